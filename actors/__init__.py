@@ -1,0 +1,1 @@
+"""Simulation (scenes, cameras, gripper execution), the GraspActor and evaluation runs."""

@@ -1,0 +1,1 @@
+"""Gripper specs and generators, object-set definitions, fence and mount; found via importlib.resources."""

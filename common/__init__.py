@@ -1,0 +1,1 @@
+"""Config, geometry, TSDF, gripper specs and encodings, object sets, network and policy."""

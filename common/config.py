@@ -1,0 +1,456 @@
+"""Typed run configuration.
+
+Every tunable lives in one of the dataclasses below, each field with a one-line docstring
+(the string literal right under it). YAML files in ``configs/`` only *override* these
+defaults; ``--set section.key=value`` on the command line overrides the YAML. The resolved
+config is written into every run directory and checkpoint (:func:`to_dict`).
+
+Bad input fails with one line naming the file and the key::
+
+    ConfigError: configs/default.yaml: sim.cameras: expected int in [1, 4], got 7
+
+Call loop::
+
+    cfg = load_config("configs/default.yaml", overrides=["learner.lr=1e-4"])
+    save_config(cfg, run_dir / "config.yaml")
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A config file, key or value is wrong; the message names the file and the key."""
+
+
+# --------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class SceneGridConfig:
+    """Scene voxel grid in the world frame (z up, table top at z = 0)."""
+
+    x_range: tuple[float, float] = (-0.192, 0.192)
+    """Workspace x bounds in metres, world frame."""
+    y_range: tuple[float, float] = (-0.192, 0.192)
+    """Workspace y bounds in metres, world frame."""
+    z_range: tuple[float, float] = (0.0, 0.128)
+    """Workspace z bounds in metres, world frame (0 = table top)."""
+    voxel_size: float = 0.004
+    """Edge of one scene voxel in metres (paper 0.002, default 0.004)."""
+    truncation_voxels: float = 5.0
+    """TSDF truncation distance in voxels; the stored TSDF is distance / truncation in [-1, 1]."""
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Grid shape (X, Y, Z) in voxels."""
+        return tuple(
+            int(round((hi - lo) / self.voxel_size))
+            for lo, hi in (self.x_range, self.y_range, self.z_range)
+        )  # type: ignore[return-value]
+
+    @property
+    def origin(self) -> tuple[float, float, float]:
+        """World position (m) of the corner of voxel (0, 0, 0); voxel centres sit half a voxel in."""
+        return (self.x_range[0], self.y_range[0], self.z_range[0])
+
+    @property
+    def truncation(self) -> float:
+        """TSDF truncation distance in metres."""
+        return self.truncation_voxels * self.voxel_size
+
+
+@dataclass
+class GripperGridConfig:
+    """Gripper voxel grid, centred on the grasp centre (TCP) in x, y; fingers point down (-z)."""
+
+    shape: tuple[int, int, int] = (32, 32, 16)
+    """Grid shape (X, Y, Z) in voxels (paper 64 x 64 x 32, default 32 x 32 x 16)."""
+    voxel_size: float = 0.008
+    """Edge of one gripper voxel in metres (paper 0.004, default 0.008)."""
+    tcp_height: float = 0.04
+    """Height (m) of the TCP above the grid's bottom face; the grid spans shape[2] * voxel_size in z."""
+    truncation_voxels: float = 5.0
+    """TSDF truncation distance in voxels."""
+
+    @property
+    def truncation(self) -> float:
+        """TSDF truncation distance in metres."""
+        return self.truncation_voxels * self.voxel_size
+
+
+@dataclass
+class SimConfig:
+    """PyBullet simulation, scenes and cameras."""
+
+    scene: str = "single"
+    """Scene kind: single | multi | obstacle."""
+    objects: str = "train"
+    """Named object set to draw objects from (see actors.objects.OBJECT_SETS)."""
+    cameras: int = 1
+    """Number of cameras fused into one TSDF (1 = top-down, 2-4 on a ring)."""
+    camera_ring_radius: float = 0.45
+    """Horizontal distance of ring cameras from the workspace centre, metres."""
+    camera_height: float = 0.6
+    """Camera height above the table, metres."""
+    image_pixels_per_voxel: float = 1.0
+    """Rendered pixels per scene voxel across the workspace (render only what the grid needs)."""
+    multi_objects: int = 5
+    """Objects in a `multi` scene."""
+    multi_max_attempts: int = 7
+    """Grasp attempts per `multi` episode before it ends."""
+    obstacle_targets: int = 3
+    """Targets in an `obstacle` scene."""
+    obstacle_obstacles: int = 3
+    """Obstacles in an `obstacle` scene."""
+    lift_height: float = 0.2
+    """A grasp succeeds when exactly one target ends above this height (m) and no obstacle did."""
+    grasp_depth: float = 0.05
+    """The grasp height is the top surface at (i, j) minus this, metres, clipped to the table."""
+    time_step: float = 1.0 / 240.0
+    """Physics time step in seconds."""
+    settle_velocity: float = 0.01
+    """Objects are at rest when every linear speed (m/s) and angular speed (rad/s) is below this."""
+    settle_max_s: float = 2.0
+    """Upper bound on simulated settling time after a drop, seconds."""
+
+
+@dataclass
+class GripperConfig:
+    """Which grippers actors train with and how they are sampled."""
+
+    train_grippers: str = "train"
+    """Gripper split or comma-separated names used for training episodes."""
+    scale_range: tuple[float, float] = (0.8, 1.2)
+    """Global gripper scale sampled uniformly per training episode."""
+    train_openings: int = 5
+    """Candidate initial openings per training episode, sampled in opening_range."""
+    opening_range: tuple[float, float] = (0.5, 1.0)
+    """Range of initial openings sampled for training (0 = closed, 1 = open)."""
+    eval_openings: tuple[float, ...] = (0.5, 0.625, 0.75, 0.875, 1.0)
+    """Openings evaluated by the policies at test time (the paper's list)."""
+    multi_finger_fraction: float = 0.5
+    """Fraction of training episodes that use a multi-finger (3+) gripper."""
+
+
+@dataclass
+class ModelConfig:
+    """AdaGrasp network."""
+
+    variant: str = "adagrasp"
+    """adagrasp (open + closed gripper TSDF) | init-only (open only) | scene-only (no gripper)."""
+    rotations: int = 16
+    """Number of rotations R about z; theta_k = 2 pi k / R."""
+    channels: int = 16
+    """Feature channels of both encoders at the 8 mm cell."""
+    feature_cell: float = 0.008
+    """Physical cell size (m) where scene features and gripper kernel meet."""
+
+
+@dataclass
+class ReplayConfig:
+    """Sharded Zarr replay."""
+
+    shards: int = 2
+    """Number of replay shards (one writer each)."""
+    capacity: int = 12000
+    """FIFO capacity in trials across all shards (paper 12,000)."""
+    chunk_trials: int = 64
+    """Trials per Zarr chunk along the time axis."""
+    max_inflight: int = 8
+    """Maximum outstanding insert/sample requests per client (bounds the object store)."""
+
+
+@dataclass
+class LearnerConfig:
+    """Learner and exploration schedule."""
+
+    lr: float = 5e-4
+    """Adam learning rate."""
+    batch_size: int = 8
+    """Trials per batch (half successes, half failures)."""
+    augment_prob: float = 0.7
+    """Probability of a random shift + rotation applied to scene and action."""
+    epsilon_start: float = 0.8
+    """Exploration epsilon at the start."""
+    epsilon_end: float = 0.2
+    """Exploration epsilon after epsilon_decay_trials."""
+    epsilon_decay_trials: int = 2000
+    """Collected trials over which epsilon falls linearly."""
+    samples_per_insert: float = 32.0
+    """Learner samples (trials) drawn per inserted trial; paper: 32 x 8 samples per 8 trials."""
+    min_replay: int = 32
+    """Trials in the replay before training starts."""
+    publish_every: int = 20
+    """Learner steps between weight publications."""
+    checkpoint_minutes: float = 5.0
+    """Minutes between checkpoints (one more is written at exit)."""
+    device: str = "auto"
+    """Torch device for the learner: auto | cpu | cuda."""
+
+
+@dataclass
+class ActorConfig:
+    """Grasp actors."""
+
+    torch_threads: int = 1
+    """Torch intra-op threads per actor process."""
+    weights_poll_episodes: int = 1
+    """Episodes between non-blocking checks for newer weights."""
+    policy: str = "adagrasp"
+    """Training-time action selection: adagrasp | fix-gripper | fix-config | random | heuristic."""
+
+
+@dataclass
+class RunConfig:
+    """One run: seed, limits, where it lives."""
+
+    seed: int = 0
+    """Root seed; actor k uses numpy SeedSequence(seed).spawn(...)[k]."""
+    run_dir: str = "runs"
+    """Parent folder of run directories (a run gets runs/<timestamp>)."""
+    max_trials: int = 0
+    """Stop after this many collected trials (0 = no limit)."""
+    max_minutes: float = 0.0
+    """Stop after this many minutes (0 = no limit)."""
+
+
+@dataclass
+class Config:
+    """The whole resolved configuration of a run."""
+
+    scene_grid: SceneGridConfig = field(default_factory=SceneGridConfig)
+    """Scene voxel grid."""
+    gripper_grid: GripperGridConfig = field(default_factory=GripperGridConfig)
+    """Gripper voxel grid."""
+    sim: SimConfig = field(default_factory=SimConfig)
+    """Simulation, scenes and cameras."""
+    grippers: GripperConfig = field(default_factory=GripperConfig)
+    """Gripper sampling."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Network."""
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    """Replay."""
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    """Learner."""
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    """Actors."""
+    run: RunConfig = field(default_factory=RunConfig)
+    """Run limits and seed."""
+
+
+# --------------------------------------------------------------------------------------
+# Validation rules: (section.key) -> (predicate, description)
+# --------------------------------------------------------------------------------------
+
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "sim.scene": ("single", "multi", "obstacle"),
+    "model.variant": ("adagrasp", "init-only", "scene-only"),
+    "learner.device": ("auto", "cpu", "cuda"),
+    "actor.policy": ("adagrasp", "fix-gripper", "fix-config", "random", "heuristic"),
+}
+
+_RANGES: dict[str, tuple[float, float]] = {
+    "sim.cameras": (1, 4),
+    "scene_grid.voxel_size": (1e-4, 0.1),
+    "gripper_grid.voxel_size": (1e-4, 0.1),
+    "scene_grid.truncation_voxels": (1.0, 100.0),
+    "gripper_grid.truncation_voxels": (1.0, 100.0),
+    "model.rotations": (1, 64),
+    "model.channels": (1, 512),
+    "replay.shards": (1, 1024),
+    "replay.capacity": (1, 10**9),
+    "replay.chunk_trials": (1, 10**6),
+    "replay.max_inflight": (1, 10**4),
+    "learner.lr": (1e-9, 1.0),
+    "learner.batch_size": (2, 4096),
+    "learner.augment_prob": (0.0, 1.0),
+    "learner.epsilon_start": (0.0, 1.0),
+    "learner.epsilon_end": (0.0, 1.0),
+    "learner.samples_per_insert": (0.0, 1e6),
+    "learner.publish_every": (1, 10**9),
+    "actor.torch_threads": (1, 256),
+    "grippers.multi_finger_fraction": (0.0, 1.0),
+    "sim.lift_height": (0.0, 10.0),
+    "sim.multi_objects": (1, 50),
+    "sim.multi_max_attempts": (1, 1000),
+    "run.max_trials": (0, 10**12),
+    "run.max_minutes": (0.0, 1e9),
+}
+
+
+def _check_value(name: str, value: Any, source: str) -> None:
+    if name in _CHOICES and value not in _CHOICES[name]:
+        raise ConfigError(f"{source}: {name}: expected one of {list(_CHOICES[name])}, got {value!r}")
+    if name in _RANGES:
+        lo, hi = _RANGES[name]
+        if not lo <= value <= hi:
+            raise ConfigError(f"{source}: {name}: expected a value in [{lo}, {hi}], got {value!r}")
+
+
+def _coerce(name: str, tp: Any, value: Any, source: str) -> Any:
+    """Convert a YAML value to the annotated type, or raise ConfigError naming source and key."""
+    origin = typing.get_origin(tp)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{source}: {name}: expected a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{source}: {name}: expected an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{source}: {name}: expected true or false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{source}: {name}: expected a string, got {value!r}")
+        return value
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{source}: {name}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(name, args[0], v, source) for v in value)
+        if len(value) != len(args):
+            raise ConfigError(f"{source}: {name}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(name, a, v, source) for a, v in zip(args, value))
+    if origin in (typing.Union, types.UnionType):
+        for a in typing.get_args(tp):
+            try:
+                return _coerce(name, a, value, source)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{source}: {name}: {value!r} does not fit {tp}")
+    raise ConfigError(f"{source}: {name}: unsupported field type {tp}")
+
+
+def _apply(obj: Any, data: dict, source: str, prefix: str = "") -> None:
+    """Override dataclass ``obj`` in place from a nested dict."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: {prefix or '<top>'}: expected a mapping, got {data!r}")
+    hints = typing.get_type_hints(type(obj))
+    names = {f.name for f in dataclasses.fields(obj)}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if key not in names:
+            raise ConfigError(f"{source}: {name}: unknown key (known: {', '.join(sorted(names))})")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            _apply(current, value, source, prefix=f"{name}.")
+        else:
+            coerced = _coerce(name, hints[key], value, source)
+            _check_value(name, coerced, source)
+            setattr(obj, key, coerced)
+
+
+def _cross_checks(cfg: Config, source: str) -> None:
+    """Constraints between fields."""
+    for axis, (lo, hi) in zip("xyz", (cfg.scene_grid.x_range, cfg.scene_grid.y_range, cfg.scene_grid.z_range)):
+        if hi <= lo:
+            raise ConfigError(f"{source}: scene_grid.{axis}_range: upper bound must exceed lower, got {(lo, hi)}")
+        cells = (hi - lo) / cfg.scene_grid.voxel_size
+        if abs(cells - round(cells)) > 1e-6:
+            raise ConfigError(
+                f"{source}: scene_grid.voxel_size: {cfg.scene_grid.voxel_size} does not divide {axis}_range {(lo, hi)}"
+            )
+    for name, size in (("scene_grid", cfg.scene_grid.voxel_size), ("gripper_grid", cfg.gripper_grid.voxel_size)):
+        ratio = cfg.model.feature_cell / size
+        if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+            raise ConfigError(
+                f"{source}: {name}.voxel_size: {size} must divide model.feature_cell {cfg.model.feature_cell}"
+            )
+    if any(s <= 0 for s in cfg.gripper_grid.shape):
+        raise ConfigError(f"{source}: gripper_grid.shape: every dimension must be positive, got {cfg.gripper_grid.shape}")
+    lo, hi = cfg.grippers.scale_range
+    if not 0 < lo <= hi:
+        raise ConfigError(f"{source}: grippers.scale_range: expected 0 < low <= high, got {(lo, hi)}")
+    lo, hi = cfg.grippers.opening_range
+    if not 0 <= lo <= hi <= 1:
+        raise ConfigError(f"{source}: grippers.opening_range: expected 0 <= low <= high <= 1, got {(lo, hi)}")
+    if any(not 0 <= o <= 1 for o in cfg.grippers.eval_openings):
+        raise ConfigError(f"{source}: grippers.eval_openings: every opening must lie in [0, 1]")
+
+
+def config_path(name_or_path: str | Path) -> Path:
+    """Resolve ``default`` / ``paper`` / ``cluster`` to the packaged YAML, else treat it as a path."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        return p
+    packaged = importlib.resources.files("configs") / f"{name_or_path}.yaml"
+    return Path(str(packaged))
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Defaults, then the YAML file (if any), then ``key.sub=value`` overrides; validated.
+
+    Raises ConfigError with one line naming the file (or ``--set``) and the key.
+    """
+    cfg = Config()
+    if path is not None:
+        p = config_path(path)
+        if not p.is_file():
+            raise ConfigError(f"{p}: config file not found")
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f" line {mark.line + 1}" if mark is not None else ""
+            raise ConfigError(f"{p}:{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+        _apply(cfg, data, str(p))
+        _cross_checks(cfg, str(p))
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set {item}: expected key=value")
+        key, raw = item.split("=", 1)
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = raw
+        nested: dict = {}
+        cur = nested
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            cur = cur.setdefault(part, {})
+        cur[parts[-1]] = value
+        _apply(cfg, nested, "--set")
+    _cross_checks(cfg, "--set" if overrides else str(path or "<defaults>"))
+    return cfg
+
+
+def to_dict(cfg: Any) -> dict:
+    """Plain nested dict of a config (tuples as lists), for YAML, JSON and checkpoints."""
+
+    def conv(v: Any) -> Any:
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        return v
+
+    return conv(cfg)
+
+
+def from_dict(data: dict, source: str = "<checkpoint>") -> Config:
+    """Rebuild a Config from :func:`to_dict` output (e.g. stored in a checkpoint)."""
+    cfg = Config()
+    _apply(cfg, data, source)
+    _cross_checks(cfg, source)
+    return cfg
+
+
+def save_config(cfg: Config, path: str | Path) -> None:
+    """Write the resolved config as YAML."""
+    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))

@@ -1,0 +1,1 @@
+"""YAML overrides of the config dataclasses in common.config (default, paper, cluster, tiny)."""

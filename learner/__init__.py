@@ -1,0 +1,1 @@
+"""Training step, augmentation, checkpoints and weight publishing."""
