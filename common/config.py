@@ -121,9 +121,47 @@ class SimConfig:
     time_step: float = 1.0 / 240.0
     """Physics time step in seconds."""
     settle_velocity: float = 0.01
-    """Objects are at rest when every linear speed (m/s) and angular speed (rad/s) is below this."""
+    """Objects are at rest when no point of any object moves faster than this (m/s, mean over a few steps)."""
     settle_max_s: float = 2.0
     """Upper bound on simulated settling time after a drop, seconds."""
+    obstacle_max_attempts: int = 5
+    """Grasp attempts per `obstacle` episode before it ends (targets + 2, like multi's 5 + 2)."""
+    drop_half_extent: float = 0.1
+    """Objects are dropped with their centre uniform in this half-size (m) square around the grid centre."""
+    fence_half_extent: float = 0.128
+    """Inner half-size (m) of the square fence that holds objects while they drop; grasp centres are
+    clipped to this square (the paper's workspace bounds)."""
+    fence_height: float = 0.2
+    """Height (m) of the drop fence walls."""
+    drop_gap: float = 0.01
+    """Vertical gap (m) between a dropped object's lowest point and the highest object already down."""
+    drop_retries: int = 10
+    """Redraws of an object that comes to rest too tall for the grid or outside the fence."""
+    object_mass: float = 0.1
+    """Mass (kg) given to every object (as the paper does), so grasp forces mean the same for all."""
+    object_lateral_friction: float = 0.6
+    """Lateral friction coefficient of every object."""
+    object_spinning_friction: float = 0.003
+    """Spinning friction coefficient of every object."""
+    table_lateral_friction: float = 1.0
+    """Lateral friction coefficient of the table."""
+    action_half_extent: float = 0.16
+    """Half-size (m) of the square of cells a random action may pick (the paper's valid bounds)."""
+    tcp_speed: float = 0.5
+    """Speed (m/s) of the gripper's descend and lift motions."""
+    tcp_max_force: float = 200.0
+    """Maximum force (N) of the constraint that drives the gripper's TCP."""
+    approach_clearance: float = 0.02
+    """The gripper starts its descent this far (m) above the highest object."""
+    table_clearance: float = 0.002
+    """Grasp heights are clipped so the gripper's lowest point, open or closed, stays this far (m)
+    above the table."""
+    close_max_s: float = 1.0
+    """Upper bound on simulated closing time; closing ends earlier when the fingers stop, seconds."""
+    lift_to: float = 0.3
+    """TCP height (m) the gripper lifts to before the label is read."""
+    hold_s: float = 0.2
+    """Simulated time the gripper holds still at the top before the label is read, seconds."""
 
 
 @dataclass
@@ -156,6 +194,19 @@ class ModelConfig:
     """Feature channels of both encoders at the 8 mm cell."""
     feature_cell: float = 0.008
     """Physical cell size (m) where scene features and gripper kernel meet."""
+    rotate: str = "scene"
+    """scene (the paper: re-encode the scene once per rotation) | kernel (speed option: encode the
+    scene once and rotate the gripper kernel; scores differ, see docs/ARCHITECTURE.md)."""
+    correlation: str = "fft"
+    """How the cross-correlation is computed: fft (real FFTs) | grouped (one grouped convolution);
+    the same sums, up to float rounding."""
+    scene_chunk: int = 4
+    """Rotated scenes encoded per batch at inference (bounds memory; results do not depend on it)."""
+    decoder_chunk: int = 16
+    """Score maps decoded per batch at inference (bounds memory; results do not depend on it)."""
+    min_surface_height: float = 0.0
+    """Learned policies only pick cells higher than this (m); 0 = any observed cell of the action
+    square (the paper's valid mask)."""
 
 
 @dataclass
@@ -170,6 +221,14 @@ class ReplayConfig:
     """Trials per Zarr chunk along the time axis."""
     max_inflight: int = 8
     """Maximum outstanding insert/sample requests per client (bounds the object store)."""
+    tsdf_levels: int = 127
+    """Stored TSDF code = round(tsdf * levels) as int8; max error 1/(2 levels) of the truncation."""
+    compression_level: int = 3
+    """Zstandard level of every stored chunk (new shards only)."""
+    actor_task_retries: int = 3
+    """Times Ray re-sends a shard request after the shard actor died and restarted (-1 = forever)."""
+    shard_num_cpus: float = 0.0
+    """CPUs a shard actor reserves in Ray (it mostly waits on disk)."""
 
 
 @dataclass
@@ -257,6 +316,8 @@ class Config:
 _CHOICES: dict[str, tuple[str, ...]] = {
     "sim.scene": ("single", "multi", "obstacle"),
     "model.variant": ("adagrasp", "init-only", "scene-only"),
+    "model.rotate": ("scene", "kernel"),
+    "model.correlation": ("fft", "grouped"),
     "learner.device": ("auto", "cpu", "cuda"),
     "actor.policy": ("adagrasp", "fix-gripper", "fix-config", "random", "heuristic"),
 }
@@ -269,10 +330,17 @@ _RANGES: dict[str, tuple[float, float]] = {
     "gripper_grid.truncation_voxels": (1.0, 100.0),
     "model.rotations": (1, 64),
     "model.channels": (1, 512),
+    "model.scene_chunk": (1, 1024),
+    "model.decoder_chunk": (1, 100000),
+    "model.min_surface_height": (0.0, 1.0),
     "replay.shards": (1, 1024),
     "replay.capacity": (1, 10**9),
     "replay.chunk_trials": (1, 10**6),
     "replay.max_inflight": (1, 10**4),
+    "replay.tsdf_levels": (1, 127),
+    "replay.compression_level": (1, 22),
+    "replay.actor_task_retries": (-1, 10**6),
+    "replay.shard_num_cpus": (0.0, 1024.0),
     "learner.lr": (1e-9, 1.0),
     "learner.batch_size": (2, 4096),
     "learner.augment_prob": (0.0, 1.0),
@@ -285,6 +353,30 @@ _RANGES: dict[str, tuple[float, float]] = {
     "sim.lift_height": (0.0, 10.0),
     "sim.multi_objects": (1, 50),
     "sim.multi_max_attempts": (1, 1000),
+    "sim.obstacle_max_attempts": (1, 1000),
+    "sim.obstacle_targets": (1, 50),
+    "sim.obstacle_obstacles": (0, 50),
+    "sim.grasp_depth": (0.0, 1.0),
+    "sim.time_step": (1e-4, 0.1),
+    "sim.settle_velocity": (1e-6, 10.0),
+    "sim.settle_max_s": (0.0, 60.0),
+    "sim.drop_half_extent": (0.0, 1.0),
+    "sim.fence_half_extent": (0.01, 1.0),
+    "sim.fence_height": (0.01, 2.0),
+    "sim.drop_gap": (0.0, 1.0),
+    "sim.drop_retries": (0, 1000),
+    "sim.object_mass": (1e-4, 100.0),
+    "sim.object_lateral_friction": (0.0, 10.0),
+    "sim.object_spinning_friction": (0.0, 10.0),
+    "sim.table_lateral_friction": (0.0, 10.0),
+    "sim.action_half_extent": (0.0, 1.0),
+    "sim.tcp_speed": (1e-3, 10.0),
+    "sim.tcp_max_force": (1e-3, 1e6),
+    "sim.approach_clearance": (0.0, 1.0),
+    "sim.table_clearance": (0.0, 0.1),
+    "sim.close_max_s": (0.01, 60.0),
+    "sim.lift_to": (0.0, 10.0),
+    "sim.hold_s": (0.0, 60.0),
     "run.max_trials": (0, 10**12),
     "run.max_minutes": (0.0, 1e9),
 }

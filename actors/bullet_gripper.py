@@ -1,0 +1,260 @@
+"""A gripper body in one PyBullet client, moved kinematically by a fixed constraint on its base.
+
+Couplings (URDF ``<mimic>`` and declared ones; PyBullet ignores ``<mimic>``) are per-step
+position targets: a ``mimic`` coupling follows the driver's measured position, a ``target``
+coupling follows the driver's commanded target (under-actuated fingers keep closing when the
+driver is blocked). Call :meth:`BulletGripper.step` once before every ``stepSimulation``.
+
+Call loop::
+
+    g = BulletGripper(client, get_gripper("parallel_jaw-0"), scale=1.0)
+    g.reset(T_world_tcp, opening=1.0)          # teleport, fingers at the opening
+    while not g.in_contact() and ...:          # descend
+        g.move_tcp(next_pose); g.step(); p.stepSimulation(physicsClientId=client)
+    g.close()
+    for _ in range(n): g.step(); p.stepSimulation(physicsClientId=client)
+    g.move_tcp(lifted_pose) ...
+    g.remove()
+
+:func:`lift_test` runs that loop on a box or a cylinder in its own client (used by
+``grippers check`` and the tests).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as p
+
+from common.geometry import Transform
+from common.gripper import GripperModel, GripperSpec, aperture_from_points, joint_positions, scaled_urdf
+
+
+class BulletGripper:
+    """A gripper body in one PyBullet client, moved kinematically by a fixed constraint on its base."""
+
+    def __init__(self, client: int, spec: GripperSpec, scale: float = 1.0) -> None:
+        self.client, self.spec, self.scale = client, spec, float(scale)
+        urdf = scaled_urdf(spec, self.scale)
+        self.body_id = p.loadURDF(str(urdf), [0, 0, 2.0], useFixedBase=False,
+                                  flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+        if self.body_id < 0:
+            raise RuntimeError(f"{spec.spec_path}: PyBullet could not load {urdf}")
+        self._joint: dict[str, int] = {}
+        self._link: dict[str, int] = {}
+        for i in range(p.getNumJoints(self.body_id, physicsClientId=client)):
+            info = p.getJointInfo(self.body_id, i, physicsClientId=client)
+            self._joint[info[1].decode()] = i
+            self._link[info[12].decode()] = i
+        missing = [j for j in spec.joint_names if j not in self._joint]
+        if missing:
+            raise RuntimeError(f"{spec.spec_path}: joints {missing} missing from the loaded body")
+        dyn = p.getDynamicsInfo(self.body_id, -1, physicsClientId=client)
+        T_base_com = Transform.from_quat(dyn[4], dyn[3])
+        self._T_com_tcp = T_base_com.inverse() * spec.T_base_tcp(self.scale)
+        self._T_tcp_com = self._T_com_tcp.inverse()
+        for link in range(-1, p.getNumJoints(self.body_id, physicsClientId=client)):
+            p.changeDynamics(self.body_id, link, lateralFriction=spec.friction, spinningFriction=0.002,
+                             rollingFriction=0.0, physicsClientId=client)
+        self._drive = {d.name: d for d in spec.drive_joints}
+        self._targets: dict[str, float] = {}
+        self._max_force = spec.base_force
+        self._cid = p.createConstraint(self.body_id, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0],
+                                       parentFramePosition=[0, 0, 0], childFramePosition=[0, 0, 2.0],
+                                       physicsClientId=client)
+        self._model: GripperModel | None = None
+        self.reset(Transform.from_yaw(0.0, (0.0, 0.0, 2.0)), 1.0)
+
+    # ---------------------------------------------------------------- pose
+    def _T_world_com(self) -> Transform:
+        pos, orn = p.getBasePositionAndOrientation(self.body_id, physicsClientId=self.client)
+        return Transform.from_quat(orn, pos)
+
+    def reset(self, T_world_tcp: Transform, opening: float) -> None:
+        """Teleport the base so the TCP is at ``T_world_tcp``; joints set to ``opening`` and held there."""
+        T_world_com = T_world_tcp * self._T_tcp_com
+        p.resetBasePositionAndOrientation(self.body_id, T_world_com.translation, T_world_com.as_quat(),
+                                          physicsClientId=self.client)
+        p.resetBaseVelocity(self.body_id, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+        for name, q in joint_positions(self.spec, opening, self.scale).items():
+            p.resetJointState(self.body_id, self._joint[name], q, 0.0, physicsClientId=self.client)
+        self.move_tcp(T_world_tcp)
+        self.set_opening_target(opening)
+
+    def move_tcp(self, T_world_tcp: Transform, max_force: float | None = None) -> None:
+        """New target of the base constraint (the TCP goes to ``T_world_tcp``); the caller steps the sim."""
+        T_world_com = T_world_tcp * self._T_tcp_com
+        self._max_force = self.spec.base_force if max_force is None else float(max_force)
+        p.changeConstraint(self._cid, jointChildPivot=T_world_com.translation,
+                           jointChildFrameOrientation=T_world_com.as_quat(), maxForce=self._max_force,
+                           physicsClientId=self.client)
+
+    def tcp_pose(self) -> Transform:
+        """Current ``T_world_tcp``."""
+        return self._T_world_com() * self._T_com_tcp
+
+    # ---------------------------------------------------------------- joints
+    def set_opening_target(self, opening: float) -> None:
+        """Motor targets of the drive joints for ``opening`` in [0, 1]; coupled joints follow in :meth:`step`."""
+        q = joint_positions(self.spec, float(np.clip(opening, 0.0, 1.0)), self.scale)
+        for name, d in self._drive.items():
+            self._targets[name] = q[name]
+            vel = self.spec.max_velocity * (self.scale if d.prismatic else 1.0)
+            p.setJointMotorControl2(self.body_id, self._joint[name], p.POSITION_CONTROL, targetPosition=q[name],
+                                    force=self.spec.force, maxVelocity=vel, physicsClientId=self.client)
+        self.step()
+
+    def close(self) -> None:
+        """Drive to the closed state (opening 0) with the spec's force."""
+        self.set_opening_target(0.0)
+
+    def joint_state(self) -> dict[str, float]:
+        """Measured position (m or rad) of every movable joint."""
+        return {n: p.getJointState(self.body_id, self._joint[n], physicsClientId=self.client)[0]
+                for n in self.spec.joint_names}
+
+    def step(self) -> None:
+        """Per-step coupling targets; call once before every ``stepSimulation``."""
+        measured: dict[str, float] = {}
+        targets = dict(self._targets)
+        for c in self.spec.couplings:
+            src = c.driver
+            if c.mode == "mimic":
+                if src not in measured:
+                    measured[src] = p.getJointState(self.body_id, self._joint[src], physicsClientId=self.client)[0]
+                base = measured[src]
+            else:
+                base = targets.get(src)
+                if base is None:
+                    base = p.getJointState(self.body_id, self._joint[src], physicsClientId=self.client)[0]
+            q = c.multiplier * base + c.offset * (self.scale if c.prismatic else 1.0)
+            targets[c.joint] = q
+            measured.setdefault(c.joint, q)
+            p.setJointMotorControl2(self.body_id, self._joint[c.joint], p.POSITION_CONTROL, targetPosition=q,
+                                    force=self.spec.coupling_force, physicsClientId=self.client)
+
+    # ---------------------------------------------------------------- sensing
+    def in_contact(self, exclude: tuple[int, ...] = ()) -> bool:
+        """True if any link of the gripper touches another body not in ``exclude``."""
+        for c in p.getContactPoints(bodyA=self.body_id, physicsClientId=self.client):
+            if c[2] != self.body_id and c[2] not in exclude:
+                return True
+        return False
+
+    def contact_bodies(self) -> set[int]:
+        """Ids of the bodies the gripper touches now."""
+        return {c[2] for c in p.getContactPoints(bodyA=self.body_id, physicsClientId=self.client) if c[2] != self.body_id}
+
+    def finger_aperture(self) -> float:
+        """Metres between the finger pads: the diameter of the widest cylinder about the approach
+        axis that no finger surface enters, from the fingertips up to ``aperture_band`` above the TCP
+        (see :func:`common.gripper.aperture_from_points`)."""
+        if self._model is None:
+            self._model = GripperModel(self.spec, self.scale)
+        T_tcp_world = self.tcp_pose().inverse()
+        pts = []
+        for link, local in self._model.finger_samples().items():
+            if link == self.spec.cut_link:
+                continue
+            st = p.getLinkState(self.body_id, self._link[link], computeForwardKinematics=True, physicsClientId=self.client)
+            T = T_tcp_world * Transform.from_quat(st[5], st[4])
+            pts.append(T.apply(local))
+        return aperture_from_points(np.concatenate(pts), self.spec.aperture_band * self.scale)
+
+    def remove(self) -> None:
+        """Remove the constraint and the body from the client."""
+        p.removeConstraint(self._cid, physicsClientId=self.client)
+        p.removeBody(self.body_id, physicsClientId=self.client)
+
+
+# --------------------------------------------------------------------------------------
+# lift test
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class LiftResult:
+    """Outcome of one :func:`lift_test`."""
+
+    success: bool
+    """The object ended at least ``lift_min`` above where it started."""
+    object_rise: float
+    """Metres the object's centre rose."""
+    contact_height: float
+    """TCP height (m) where the descent stopped."""
+    reason: str
+    """Empty on success, else why it failed."""
+
+
+def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: float = 0.04,
+              offset: tuple[float, float] = (0.0, 0.0), yaw: float = 0.0, mass: float = 0.1,
+              friction: float = 1.0, time_step: float = 1.0 / 240.0, lift_height: float = 0.2,
+              lift_min: float = 0.1) -> LiftResult:
+    """Top-down grasp of one object on a plane in a fresh DIRECT client; True if it is lifted.
+
+    ``shape``: box (a cube of edge ``size``) or cylinder (diameter and height ``size``), placed at
+    ``offset`` (m) from the TCP axis with ``yaw`` (rad). The gripper descends (opening 1, closing
+    along world x) to the object's half height or first contact, closes, and lifts by ``lift_height``.
+    """
+    import pybullet_data
+
+    client = p.connect(p.DIRECT)
+    try:
+        p.setGravity(0, 0, -9.81, physicsClientId=client)
+        p.setTimeStep(time_step, physicsClientId=client)
+        p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=client)
+        plane = p.loadURDF("plane.urdf", physicsClientId=client)
+        p.changeDynamics(plane, -1, lateralFriction=friction, physicsClientId=client)
+        if shape == "box":
+            col = p.createCollisionShape(p.GEOM_BOX, halfExtents=[size / 2] * 3, physicsClientId=client)
+        elif shape == "cylinder":
+            col = p.createCollisionShape(p.GEOM_CYLINDER, radius=size / 2, height=size, physicsClientId=client)
+        else:
+            raise ValueError(f"shape must be box or cylinder, got {shape!r}")
+        quat = p.getQuaternionFromEuler([0, 0, yaw])
+        obj = p.createMultiBody(mass, col, basePosition=[offset[0], offset[1], size / 2], baseOrientation=quat,
+                                physicsClientId=client)
+        p.changeDynamics(obj, -1, lateralFriction=friction, rollingFriction=0.0, spinningFriction=0.001,
+                         physicsClientId=client)
+        for _ in range(20):
+            p.stepSimulation(physicsClientId=client)
+        z0 = p.getBasePositionAndOrientation(obj, physicsClientId=client)[0][2]
+
+        g = BulletGripper(client, spec, scale)
+        start = size + 0.12 * scale
+        target = size / 2
+        g.reset(Transform.from_yaw(0.0, (0.0, 0.0, start)), 1.0)
+        for _ in range(10):
+            g.step()
+            p.stepSimulation(physicsClientId=client)
+        speed = 0.3 * time_step
+        z = start
+        for _ in range(int((start - target) / speed) + int(0.3 / time_step)):
+            z = max(target, z - speed)
+            g.move_tcp(Transform.from_yaw(0.0, (0.0, 0.0, z)))
+            g.step()
+            p.stepSimulation(physicsClientId=client)
+            if g.in_contact() or g.tcp_pose().translation[2] < target + 1e-3:
+                break
+        contact_z = g.tcp_pose().translation[2]
+        g.move_tcp(g.tcp_pose())
+        g.close()
+        for _ in range(int(0.6 / time_step)):
+            g.step()
+            p.stepSimulation(physicsClientId=client)
+        T = g.tcp_pose()
+        steps = int(1.0 / time_step)
+        for k in range(1, steps + 1):
+            g.move_tcp(Transform(T.rotation, T.translation + [0, 0, lift_height * k / steps]))
+            g.step()
+            p.stepSimulation(physicsClientId=client)
+        for _ in range(int(0.3 / time_step)):
+            g.step()
+            p.stepSimulation(physicsClientId=client)
+        rise = p.getBasePositionAndOrientation(obj, physicsClientId=client)[0][2] - z0
+        ok = rise >= lift_min
+        reason = "" if ok else f"{shape} rose only {rise:.3f} m (needs {lift_min} m)"
+        return LiftResult(ok, float(rise), float(contact_z), reason)
+    finally:
+        p.disconnect(physicsClientId=client)

@@ -1,0 +1,213 @@
+"""Gripper TSDF encodings on the gripper grid, computed from the URDF geometry and cached.
+
+Pipeline: forward kinematics (yourdfpy) -> posed collision parts -> signed distance at every
+voxel centre -> distance / truncation clipped to [-1, 1]. Sign convention as the scene TSDF:
+positive in free space, negative inside the gripper.
+
+Signed distance per part, evaluated only on the grid block that the part's posed bounding box
+(plus the truncation distance) covers, combined by a minimum over parts:
+
+- boxes, spheres, cylinders: exact analytic distance;
+- meshes: nearest of dense surface samples (spacing a third of a voxel, KD-tree built once per
+  gripper and scale, in the part frame), signed by that sample's face normal.
+
+Grid frame: the TCP frame at yaw 0 (fingers along -z, closing along x); voxel (i, j, k) has its
+centre at ``((i + 0.5 - gX / 2) v, (j + 0.5 - gY / 2) v, (k + 0.5) v - tcp_height)``.
+
+Usage::
+
+    enc = GripperEncoder(cfg.gripper_grid)                  # memory + disk cache
+    x = enc.encode(spec, scale=1.1, openings=(0.5, 1.0))    # (S, 2, gX, gY, gZ) float32
+    key = gripper_key(spec.name, 1.1, (0.5, 1.0))           # the replay's table key
+    one = encode_gripper(spec, 1.0, 0.75, cfg.gripper_grid) # (2, gX, gY, gZ), no cache
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from common.config import GripperGridConfig
+from common.gripper import GripperModel, GripperSpec, _sample_surface, cache_root
+
+ENCODING_VERSION = "1"
+"""Bumped when the encoding changes, so disk caches are not reused across versions."""
+SAMPLES_PER_VOXEL = 3.0
+"""Mesh surface samples per voxel edge (sample spacing = voxel_size / this)."""
+
+
+def grid_points(grid: GripperGridConfig) -> np.ndarray:
+    """(gX, gY, gZ, 3) float64 voxel centres in the TCP frame, metres."""
+    gx, gy, gz = grid.shape
+    v = grid.voxel_size
+    axes = [(np.arange(gx) + 0.5 - gx / 2) * v, (np.arange(gy) + 0.5 - gy / 2) * v, (np.arange(gz) + 0.5) * v - grid.tcp_height]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+
+def gripper_key(name: str, scale: float, openings: tuple[float, ...]) -> str:
+    """Key of one gripper encoding set, e.g. ``wsg_50@1.1000:0.5000,1.0000`` (name, scale, openings)."""
+    return f"{name}@{float(scale):.4f}:" + ",".join(f"{float(o):.4f}" for o in openings)
+
+
+def _box_sdf(p: np.ndarray, half: np.ndarray) -> np.ndarray:
+    q = np.abs(p) - half
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    return outside + np.minimum(q.max(axis=-1), 0.0)
+
+
+def _cylinder_sdf(p: np.ndarray, r: float, half_len: float) -> np.ndarray:
+    d = np.stack([np.hypot(p[:, 0], p[:, 1]) - r, np.abs(p[:, 2]) - half_len], axis=-1)
+    return np.linalg.norm(np.maximum(d, 0.0), axis=-1) + np.minimum(d.max(axis=-1), 0.0)
+
+
+class _PartField:
+    """Signed distance of one collision part in its own frame."""
+
+    def __init__(self, part, spacing: float) -> None:
+        self.kind, self.size = part.kind, part.size
+        m = part.mesh
+        self.corners = np.array([[x, y, z] for x in m.bounds[:, 0] for y in m.bounds[:, 1] for z in m.bounds[:, 2]])
+        self.tree = None
+        if part.kind == "mesh":
+            n = int(np.clip(m.area / spacing**2, 500, 400_000))
+            pts, faces = _sample_surface(m, n)
+            normals = np.asarray(m.face_normals)[faces]
+            pts = np.concatenate([pts, np.asarray(m.vertices)])
+            normals = np.concatenate([normals, np.asarray(m.vertex_normals)])
+            self.tree, self.normals = cKDTree(pts), normals
+
+    def sdf(self, p: np.ndarray) -> np.ndarray:
+        """(N,) signed distance (m) of points (N, 3) in the part frame; negative inside."""
+        if self.kind == "box":
+            return _box_sdf(p, self.size)
+        if self.kind == "sphere":
+            return np.linalg.norm(p, axis=-1) - self.size[0]
+        if self.kind == "cylinder":
+            return _cylinder_sdf(p, self.size[0], self.size[1])
+        d, idx = self.tree.query(p, k=1)
+        sign = np.einsum("ij,ij->i", p - self.tree.data[idx], self.normals[idx])
+        return np.where(sign < 0.0, -d, d)
+
+
+class _GripperField:
+    """Signed distance field of one gripper at one scale on one grid; FK per opening."""
+
+    def __init__(self, spec: GripperSpec, scale: float, grid: GripperGridConfig) -> None:
+        self.model = GripperModel(spec, scale)
+        self.grid = grid
+        self.points = grid_points(grid)
+        self.lo = self.points[0, 0, 0]
+        spacing = grid.voxel_size / SAMPLES_PER_VOXEL
+        self.fields = [_PartField(part, spacing) for part in self.model.parts]
+
+    def sdf(self, opening: float) -> np.ndarray:
+        """(gX, gY, gZ) float32 signed distance (m) clipped to +-truncation, TCP frame."""
+        g, trunc, v = self.grid, self.grid.truncation, self.grid.voxel_size
+        out = np.full(g.shape, trunc, dtype=np.float64)
+        for (part, T), field in zip(self.model.posed_parts(opening), self.fields):
+            corners = field.corners @ T[:3, :3].T + T[:3, 3]
+            i0 = np.floor((corners.min(axis=0) - trunc - self.lo) / v).astype(int)
+            i1 = np.ceil((corners.max(axis=0) + trunc - self.lo) / v).astype(int) + 1
+            i0 = np.clip(i0, 0, g.shape)
+            i1 = np.clip(i1, 0, g.shape)
+            if np.any(i1 <= i0):
+                continue
+            sl = tuple(slice(a, b) for a, b in zip(i0, i1))
+            pts = self.points[sl].reshape(-1, 3)
+            local = (pts - T[:3, 3]) @ T[:3, :3]
+            block = out[sl]
+            np.minimum(block, field.sdf(local).reshape(block.shape), out=block)
+        np.clip(out, -trunc, trunc, out=out)
+        return out.astype(np.float32)
+
+
+def encode_gripper(spec: GripperSpec, scale: float, opening: float, grid: GripperGridConfig) -> np.ndarray:
+    """(2, gX, gY, gZ) float32 TSDF / truncation in [-1, 1] at ``opening`` (channel 0) and closed
+    (channel 1); TCP frame at yaw 0, grid centred on the TCP in x, y, TCP ``grid.tcp_height`` above
+    the grid bottom, fingers pointing -z; > 0 free space. No cache (see :class:`GripperEncoder`)."""
+    field = _GripperField(spec, scale, grid)
+    out = np.stack([field.sdf(opening), field.sdf(0.0)]) / np.float32(grid.truncation)
+    assert out.shape == (2, *grid.shape) and out.dtype == np.float32, out.shape
+    return out
+
+
+def _grid_tag(grid: GripperGridConfig) -> str:
+    return "g{}x{}x{}_v{:.5f}_h{:.5f}_t{:.3f}".format(*grid.shape, grid.voxel_size, grid.tcp_height, grid.truncation_voxels)
+
+
+def _spec_tag(spec: GripperSpec) -> str:
+    """Identity of a gripper's geometry and TCP: processed URDF folder (content hash) + TCP fields."""
+    text = f"{ENCODING_VERSION}|{spec.urdf}|{spec.tcp_position}|{spec.approach_axis}|{spec.closing_axis}"
+    text += "|" + "|".join(f"{d.name}:{d.open}:{d.closed}" for d in spec.drive_joints)
+    text += "|" + "|".join(f"{c.joint}:{c.driver}:{c.multiplier}:{c.offset}" for c in spec.couplings)
+    return f"{spec.name}-{hashlib.sha1(text.encode()).hexdigest()[:12]}"
+
+
+class GripperEncoder:
+    """Gripper encodings cached in memory (LRU) and on disk, keyed by (gripper, scale, opening, grid).
+
+    Disk cache: ``<cache>/grippers/encodings/<grid>/<gripper>-<hash>/s<scale>_o<opening>.npy``
+    (``disk=False`` turns it off). Writes are atomic, so parallel actors may share the folder.
+    """
+
+    def __init__(self, grid: GripperGridConfig, disk: bool = True, memory_items: int = 512,
+                 cache_dir: Path | None = None) -> None:
+        self.grid = grid
+        self.disk = disk
+        self.memory_items = memory_items
+        self.root = (cache_dir or cache_root() / "grippers" / "encodings") / _grid_tag(grid)
+        self._memory: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._fields: OrderedDict[tuple, _GripperField] = OrderedDict()
+
+    def _field(self, spec: GripperSpec, scale: float) -> _GripperField:
+        key = (_spec_tag(spec), round(float(scale), 6))
+        if key not in self._fields:
+            self._fields[key] = _GripperField(spec, scale, self.grid)
+            while len(self._fields) > 8:
+                self._fields.popitem(last=False)
+        self._fields.move_to_end(key)
+        return self._fields[key]
+
+    def _one(self, spec: GripperSpec, scale: float, opening: float) -> np.ndarray:
+        """(gX, gY, gZ) float32 TSDF / truncation at one opening (cached)."""
+        tag = _spec_tag(spec)
+        key = (tag, round(float(scale), 6), round(float(opening), 6))
+        hit = self._memory.get(key)
+        if hit is not None:
+            self._memory.move_to_end(key)
+            return hit
+        path = self.root / tag / f"s{float(scale):.6f}_o{float(opening):.6f}.npy"
+        arr = None
+        if self.disk and path.is_file():
+            try:
+                arr = np.load(path)
+            except (OSError, ValueError):
+                arr = None
+            if arr is not None and (arr.shape != self.grid.shape or arr.dtype != np.float32):
+                arr = None
+        if arr is None:
+            arr = self._field(spec, scale).sdf(opening) / np.float32(self.grid.truncation)
+            if self.disk:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npy")
+                np.save(tmp, arr)
+                os.replace(tmp, path)
+        arr.setflags(write=False)
+        self._memory[key] = arr
+        while len(self._memory) > self.memory_items:
+            self._memory.popitem(last=False)
+        return arr
+
+    def encode(self, spec: GripperSpec, scale: float, openings: tuple[float, ...]) -> np.ndarray:
+        """(S, 2, gX, gY, gZ) float32 TSDF / truncation at each opening (channel 0) and closed (channel 1)."""
+        if len(openings) == 0 or any(not 0.0 <= o <= 1.0 for o in openings):
+            raise ValueError(f"openings must be a non-empty tuple of values in [0, 1], got {openings}")
+        closed = self._one(spec, scale, 0.0)
+        out = np.stack([np.stack([self._one(spec, scale, o), closed]) for o in openings])
+        assert out.shape == (len(openings), 2, *self.grid.shape) and out.dtype == np.float32, out.shape
+        return out

@@ -1,0 +1,555 @@
+"""The AdaGrasp network (Xu et al., ICRA 2021): scene and gripper encoders, cross-convolution, decoder.
+
+Layout (both scales come from the config; ``model.feature_cell`` is where the two meet)::
+
+    scene (B, 2, X, Y, Z)  -> rotate about z by theta_k (bilinear, border)
+        -> 3-D conv 2->16 (stride 1) -> 3-D conv 16->32 -> 3-D conv 32->64   (stride 2 until the
+           feature cell is reached) -> z folded into channels -> 1x1 conv -> 64
+        -> 2 residual blocks (64) -> 3x3 conv -> C = 16 channels on the (Fx, Fy) feature grid
+    gripper (N, 2, gX, gY, gZ) (channel 0 = TSDF at the initial opening, 1 = closed)
+        -> 3-D conv ->16 -> 3-D conv 16->64 (stride 2 until the feature cell) -> z folded
+        -> 1x1 conv -> 2 residual blocks -> 3x3 conv -> C = 16 channels: kernel (N, C, Kx, Ky)
+    cross-convolution: depthwise correlation of the scene features with each kernel (one grouped
+        conv), divided by Kx * Ky; an even kernel puts its TCP on a cell corner, so the result
+        lives on the (Fx + 1, Fy + 1) lattice of feature-cell corners
+    decoder: conv 16->64, residual block, then per factor 2 of feature_cell / voxel_size a conv,
+        an exact bilinear resampling to the next finer lattice of cell centres and a residual
+        block; a 1x1 conv gives two logits per scene cell (channel 0 = failure, 1 = success)
+    -> rotate back by -theta_k -> logits (B, 2, X, Y) on the scene grid
+
+Rotation convention: the score at scene cell (i, j) of rotation k is the grasp whose TCP is at
+the centre of cell (i, j) with yaw theta_k = 2 pi k / R about +z, i.e. the gripper's own x axis
+(the gripper grid's axis 0) turned from world x towards world y by theta_k. Rotations are about
+the grid centre in cell units (``align_corners=True``), so multiples of 90 degrees map cells onto
+cells exactly.
+
+Variants (``model.variant``): ``adagrasp`` (open + closed gripper TSDF), ``init-only`` (open only),
+``scene-only`` (no gripper: the scene features go straight to the decoder; every gripper and
+opening gets the same map). ``model.rotate``: ``scene`` (the paper: the scene is re-encoded once
+per rotation) or ``kernel`` (a speed option: the scene is encoded once and the gripper kernel,
+zero-padded to hold any rotation, is rotated instead; the scene features are not rotation
+equivariant, so scores differ from ``scene``).
+
+Use::
+
+    model = build_model(cfg).eval()
+    probs = model.predict(scene, [enc_a, enc_b], keys=["a", "b"])  # (G, S_max, R, X, Y)
+    logits = model.train().forward_train(scene_b, gripper_b, k_b)    # (B, 2, X, Y)
+    loss = model.loss(logits, action_b, label_b)
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from common.config import Config, GripperGridConfig, ModelConfig, SceneGridConfig
+
+SUCCESS = 1
+"""Index of the success logit along the logits' channel axis (0 is failure)."""
+_KERNEL_CACHE_SIZE = 64
+"""Gripper kernels kept per model (least recently used dropped first)."""
+
+
+class NetworkConfigError(ValueError):
+    """The grids and the model config do not fit together; the message names the field."""
+
+
+# --------------------------------------------------------------------------------------
+# Building blocks
+# --------------------------------------------------------------------------------------
+
+
+class ConvBlock(nn.Module):
+    """Conv (2-D or 3-D) -> optional batch norm -> optional ReLU.
+
+    In eval mode the batch norm is folded into the convolution's weights on the fly (one pass
+    over the activations instead of three).
+    """
+
+    def __init__(self, dim: int, cin: int, cout: int, kernel=3, stride=1, norm: bool = True, relu: bool = True):
+        super().__init__()
+        conv = nn.Conv3d if dim == 3 else nn.Conv2d
+        pad = tuple(k // 2 for k in kernel) if isinstance(kernel, tuple) else kernel // 2
+        self.conv = conv(cin, cout, kernel, stride=stride, padding=pad, bias=not norm)
+        self.norm = (nn.BatchNorm3d if dim == 3 else nn.BatchNorm2d)(cout) if norm else None
+        self.relu = relu
+        self._fn = F.conv3d if dim == 3 else F.conv2d
+
+    def _folded(self) -> tuple[torch.Tensor, torch.Tensor]:
+        bn = self.norm
+        scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+        shape = (-1,) + (1,) * (self.conv.weight.dim() - 1)
+        bias = bn.bias - bn.running_mean * scale
+        if self.conv.bias is not None:
+            bias = bias + self.conv.bias * scale
+        return self.conv.weight * scale.view(shape), bias
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.norm is not None and not self.training:
+            w, b = self._folded()
+            c = self.conv
+            y = self._fn(x, w, b, c.stride, c.padding, c.dilation, c.groups)
+        else:
+            y = self.conv(x)
+            if self.norm is not None:
+                y = self.norm(y)
+        return F.relu(y, inplace=True) if self.relu else y
+
+
+class ResBlock2D(nn.Module):
+    """Two 3x3 conv + batch norm layers with an identity shortcut, ReLU after the sum."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = ConvBlock(2, channels, channels)
+        self.conv2 = ConvBlock(2, channels, channels, relu=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.relu(self.conv2(self.conv1(x)) + x, inplace=True)
+
+
+class Encoder(nn.Module):
+    """3-D conv stack down to the feature cell, z folded into channels, 2-D residual blocks.
+
+    Input (B, cin, X, Y, Z) float32 -> (B, cout, X / f, Y / f) with f = feature_cell / voxel_size.
+    """
+
+    def __init__(
+        self, cin: int, widths: tuple[int, ...], down: int, depth: int, mid: int, cout: int, fold_act: bool, where: str
+    ):
+        super().__init__()
+        if down >= len(widths):
+            raise NetworkConfigError(
+                f"{where}.voxel_size: needs {down} stride-2 stages but the encoder has {len(widths) - 1}"
+            )
+        layers, c = [], cin
+        for n, w in enumerate(widths):
+            layers.append(ConvBlock(3, c, w, stride=2 if 0 < n <= down else 1))
+            c = w
+        self.conv3d = nn.Sequential(*layers)
+        self.depth = depth
+        self.fold = ConvBlock(2, c * depth, mid, kernel=1, norm=fold_act, relu=fold_act)
+        self.res = nn.Sequential(ResBlock2D(mid), ResBlock2D(mid))
+        self.out = ConvBlock(2, mid, cout, norm=False)
+        self.conv3d.to(memory_format=torch.channels_last_3d)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.conv3d(x.contiguous(memory_format=torch.channels_last_3d))
+        b, c, fx, fy, fz = y.shape
+        assert fz == self.depth, (y.shape, self.depth)
+        # (B, Fx, Fy, Fz * C) is a view of the channels-last volume; as (B, Fz * C, Fx, Fy) it is a
+        # channels-last image whose channel index is z * C + c.
+        y = y.permute(0, 2, 3, 4, 1).reshape(b, fx, fy, fz * c).permute(0, 3, 1, 2)
+        return self.out(self.res(self.fold(y)))
+
+
+def _pow2(ratio: float, where: str) -> int:
+    """log2 of an integer power-of-two ratio, or NetworkConfigError naming ``where``."""
+    r = int(round(ratio))
+    if abs(ratio - r) > 1e-6 or r < 1 or r & (r - 1):
+        raise NetworkConfigError(f"{where}: model.feature_cell / voxel_size must be a power of 2, got {ratio:g}")
+    return int(math.log2(r))
+
+
+def _upsample(y: torch.Tensor, corners: bool) -> torch.Tensor:
+    """Exact bilinear resampling (M, C, h, w) onto the centres of cells half the size.
+
+    ``corners``: the input samples the corners of n cells (h = n + 1), else their centres (h = n);
+    the output samples the centres of the 2n half-size cells (clamped at the border).
+    """
+    if corners:
+        h, w = y.shape[-2:]
+        y = F.interpolate(y, size=(2 * h - 1, 2 * w - 1), mode="bilinear", align_corners=True)
+        return F.avg_pool2d(y, 2, stride=1)
+    return F.interpolate(y, scale_factor=2, mode="bilinear", align_corners=False)
+
+
+def _fft_size(n: int) -> int:
+    """Smallest m >= n whose prime factors are 2, 3 and 5 (fast FFT lengths)."""
+    m = n
+    while True:
+        r = m
+        for p in (2, 3, 5):
+            while r % p == 0:
+                r //= p
+        if r == 1:
+            return m
+        m += 1
+
+
+def rotation_grid(theta: torch.Tensor, nx: int, ny: int) -> torch.Tensor:
+    """Sampling grid (B, nx, ny, 2) float32 for ``grid_sample(..., align_corners=True)``.
+
+    Output cell (i, j) of a (B, C, nx, ny) tensor reads the input at the rotation by ``theta``
+    (B,) radians (counter-clockwise, from axis 0 towards axis 1) of its position about the grid
+    centre, in cell units. So ``out(q) = in(R(theta) q)``: the content turns by -theta.
+    """
+    theta = theta.detach().to("cpu", torch.float64)
+    c, s = torch.cos(theta), torch.sin(theta)
+    c = torch.where(c.abs() < 1e-12, torch.zeros_like(c), c)
+    s = torch.where(s.abs() < 1e-12, torch.zeros_like(s), s)
+    hx, hy = (nx - 1) / 2.0, (ny - 1) / 2.0
+    ci = (torch.arange(nx, dtype=torch.float64) - hx).view(1, nx, 1)
+    cj = (torch.arange(ny, dtype=torch.float64) - hy).view(1, 1, ny)
+    c, s = c.view(-1, 1, 1), s.view(-1, 1, 1)
+    src_i = c * ci - s * cj + hx
+    src_j = s * ci + c * cj + hy
+    gi = src_i / hx - 1.0 if nx > 1 else torch.zeros_like(src_i)
+    gj = src_j / hy - 1.0 if ny > 1 else torch.zeros_like(src_j)
+    return torch.stack([gj, gi], dim=-1).float()
+
+
+def rotate2d(x: torch.Tensor, theta: torch.Tensor, padding_mode: str = "border") -> torch.Tensor:
+    """Sample (B, C, nx, ny) ``x`` at the positions rotated by ``theta`` (B,) rad: out(q) = x(R q)."""
+    grid = rotation_grid(theta, x.shape[2], x.shape[3]).to(x.device)
+    return F.grid_sample(x, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)
+
+
+# --------------------------------------------------------------------------------------
+# The model
+# --------------------------------------------------------------------------------------
+
+
+class AdaGraspNet(nn.Module):
+    """Scores top-down grasps of one or more grippers at R rotations on the scene grid."""
+
+    def __init__(self, model: ModelConfig, scene_grid: SceneGridConfig, gripper_grid: GripperGridConfig):
+        super().__init__()
+        self.variant = model.variant
+        self.rotations = int(model.rotations)
+        self.rotate_mode = model.rotate
+        self.correlation = model.correlation
+        self.channels = int(model.channels)
+        self.scene_chunk = int(model.scene_chunk)
+        self.decoder_chunk = int(model.decoder_chunk)
+        self.scene_shape = tuple(int(v) for v in scene_grid.shape)
+        self.gripper_shape = tuple(int(v) for v in gripper_grid.shape)
+        if self.variant not in ("adagrasp", "init-only", "scene-only"):
+            raise NetworkConfigError(f"model.variant: unknown variant {self.variant!r}")
+        if self.correlation not in ("fft", "grouped"):
+            raise NetworkConfigError(f"model.correlation: expected fft or grouped, got {self.correlation!r}")
+        if self.rotate_mode not in ("scene", "kernel"):
+            raise NetworkConfigError(f"model.rotate: expected scene or kernel, got {self.rotate_mode!r}")
+
+        up = _pow2(model.feature_cell / scene_grid.voxel_size, "scene_grid.voxel_size")
+        ratio = 2**up
+        X, Y, Z = self.scene_shape
+        for name, n in (("x", X), ("y", Y), ("z", Z)):
+            if n % ratio:
+                raise NetworkConfigError(f"scene_grid.{name}_range: {n} cells is not a multiple of {ratio}")
+        self.feature_shape = (X // ratio, Y // ratio)
+        self.scene_encoder = Encoder(2, (16, 32, 64), up, Z // ratio, 64, self.channels, True, "scene_grid")
+
+        self.kernel_shape = (0, 0)
+        if self.variant != "scene-only":
+            gdown = _pow2(model.feature_cell / gripper_grid.voxel_size, "gripper_grid.voxel_size")
+            g = 2**gdown
+            gx, gy, gz = self.gripper_shape
+            if gx % g or gy % g or gz % g:
+                raise NetworkConfigError(f"gripper_grid.shape: {self.gripper_shape} is not a multiple of {g}")
+            cin = 2 if self.variant == "adagrasp" else 1
+            self.gripper_encoder = Encoder(cin, (16, 64), gdown, gz // g, 64, self.channels, False, "gripper_grid")
+            if gx != gy:
+                raise NetworkConfigError(f"gripper_grid.shape: x and y must be equal, got {self.gripper_shape}")
+            self.kernel_shape = (gx // g, gy // g)
+
+        # The cross-correlation of an even kernel lands on cell corners, (Fx + 1, Fy + 1) points;
+        # an odd kernel (or no kernel) lands on the feature-cell centres. Each decoder stage then
+        # resamples exactly (bilinear) onto the centres of cells half the size.
+        self.corners = self.variant != "scene-only" and self.kernel_shape[0] % 2 == 0
+        self.lattice0 = tuple(n + 1 if self.corners else n for n in self.feature_shape)
+
+        c = self.channels
+        widths = [64] + [64] * max(0, up - 1) + ([32] if up > 0 else [])
+        self.dec_in = ConvBlock(2, c, 64, norm=False)
+        self.dec_res0 = ResBlock2D(64)
+        self.dec_up = nn.ModuleList()
+        self.dec_res = nn.ModuleList()
+        for u in range(up):
+            self.dec_up.append(ConvBlock(2, widths[u], widths[u + 1]))
+            self.dec_res.append(ResBlock2D(widths[u + 1]))
+        self.dec_out = nn.Conv2d(widths[-1], 2, kernel_size=1, bias=False)
+
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.Conv3d)):
+                nn.init.kaiming_normal_(m.weight)
+                if m.bias is not None:
+                    nn.init.zeros_(m.bias)
+            elif isinstance(m, (nn.BatchNorm2d, nn.BatchNorm3d)):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+
+        self.weights_version = 0
+        """Version of the loaded weights; part of the gripper-kernel cache key."""
+        self._kernels: OrderedDict = OrderedDict()
+
+    # ---------------------------------------------------------------- state and cache
+
+    def clear_cache(self) -> None:
+        """Forget cached gripper kernels (call after changing weights in place in eval mode)."""
+        self._kernels.clear()
+
+    def train(self, mode: bool = True) -> "AdaGraspNet":
+        self.clear_cache()
+        return super().train(mode)
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        self.clear_cache()
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    def set_weights(self, state_dict: dict, version: int) -> None:
+        """Load ``state_dict`` and record its ``version`` (the kernel cache is keyed by it)."""
+        self.load_state_dict(state_dict)
+        self.weights_version = int(version)
+
+    # ---------------------------------------------------------------- pieces
+
+    def _check_scene(self, scene: torch.Tensor) -> None:
+        assert scene.dim() == 5 and scene.shape[1] == 2 and tuple(scene.shape[2:]) == self.scene_shape, (
+            f"scene: expected (B, 2, {', '.join(map(str, self.scene_shape))}), got {tuple(scene.shape)}"
+        )
+
+    def _check_gripper(self, gripper: torch.Tensor) -> None:
+        assert gripper.dim() == 5 and gripper.shape[1] == 2 and tuple(gripper.shape[2:]) == self.gripper_shape, (
+            f"gripper: expected (N, 2, {', '.join(map(str, self.gripper_shape))}), got {tuple(gripper.shape)}"
+        )
+
+    def encode_scene(self, scene: torch.Tensor, theta: torch.Tensor | None) -> torch.Tensor:
+        """Scene (B, 2, X, Y, Z) rotated by ``theta`` (B,) rad (or not, if None) -> features (B, C, Fx, Fy)."""
+        if theta is not None:
+            b, ch, x, y, z = scene.shape
+            flat = scene.permute(0, 1, 4, 2, 3).reshape(b, ch * z, x, y)
+            flat = rotate2d(flat, theta)
+            scene = flat.reshape(b, ch, z, x, y).permute(0, 1, 3, 4, 2)
+        return self.scene_encoder(scene)
+
+    def encode_gripper(self, gripper: torch.Tensor) -> torch.Tensor:
+        """Gripper TSDFs (N, 2, gX, gY, gZ) -> kernels (N, C, Kx, Ky); init-only reads channel 0 only."""
+        if self.variant == "init-only":
+            gripper = gripper[:, :1]
+        return self.gripper_encoder(gripper)
+
+    def _pad_kernel(self, kernels: torch.Tensor) -> torch.Tensor:
+        """Zero-pad square kernels (N, C, K, K) so that any rotation about their centre fits; keeps K's parity."""
+        k = kernels.shape[-1]
+        extra = math.ceil((math.sqrt(2.0) * k - k) / 2.0)
+        return F.pad(kernels, (extra, extra, extra, extra))
+
+    def rotate_kernels(self, kernels: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """Kernels (N, C, K, K) turned by ``theta`` (N,) rad about their TCP -> (N, C, K', K') zero-padded."""
+        padded = self._pad_kernel(kernels)
+        return rotate2d(padded, -theta, padding_mode="zeros")
+
+    def cross_correlate(self, features: torch.Tensor, kernels: torch.Tensor, pairs: str) -> torch.Tensor:
+        """Depthwise correlation of the scene features with gripper kernels, divided by Kx * Ky.
+
+        ``pairs == "all"``: features (B, C, Fx, Fy) x kernels (N, C, Kx, Ky) -> (B, N, C, Lx, Ly).
+        ``pairs == "matched"``: features (B, ...) x kernels (B, ...) -> (B, C, Lx, Ly), sample b with kernel b.
+        Output o correlates the kernel with features o - Kx // 2 .. o - Kx // 2 + Kx - 1 (zero
+        outside). ``model.correlation`` picks the method: ``grouped`` (one grouped convolution) or
+        ``fft`` (the same sums through real FFTs of the zero-padded maps).
+        """
+        b, c, fx, fy = features.shape
+        n, c2, kx, ky = kernels.shape
+        assert c2 == c and (pairs == "all" or n == b), (features.shape, kernels.shape, pairs)
+        scale = 1.0 / (kx * ky)
+        px, py = kx // 2, ky // 2
+        if self.correlation == "fft":
+            sx, sy = _fft_size(fx + kx - 1), _fft_size(fy + ky - 1)
+            ff = torch.fft.rfft2(features, s=(sx, sy))
+            fk = torch.conj(torch.fft.rfft2(kernels * scale, s=(sx, sy)))
+            prod = ff.unsqueeze(1) * fk.unsqueeze(0) if pairs == "all" else ff * fk
+            circ = torch.fft.irfft2(prod, s=(sx, sy))  # circ[d] = sum_m f[m + d] k[m], indices mod s
+            lx, ly = fx + 2 * px - kx + 1, fy + 2 * py - ky + 1
+            return torch.roll(circ, shifts=(px, py), dims=(-2, -1))[..., :lx, :ly]
+        if pairs == "all":
+            weight = kernels.transpose(0, 1).reshape(c * n, 1, kx, ky)
+            out = F.conv2d(features, weight * scale, padding=(px, py), groups=c)
+            return out.view(b, c, n, out.shape[-2], out.shape[-1]).transpose(1, 2)
+        weight = kernels.reshape(b * c, 1, kx, ky)
+        out = F.conv2d(features.reshape(1, b * c, fx, fy), weight * scale, padding=(px, py), groups=b * c)
+        return out.view(b, c, out.shape[-2], out.shape[-1])
+
+    def decode(self, x: torch.Tensor) -> torch.Tensor:
+        """Cross-correlation maps (M, C, Lx, Ly) -> logits (M, 2, X, Y) on the scene grid (unrotated frame)."""
+        y = self.dec_res0(self.dec_in(x.contiguous(memory_format=torch.channels_last)))
+        corners = self.corners
+        for conv, res in zip(self.dec_up, self.dec_res):
+            y = res(_upsample(conv(y), corners))
+            corners = False
+        if corners:
+            y = F.avg_pool2d(y, 2, stride=1)
+        return self.dec_out(y)
+
+    # ---------------------------------------------------------------- training
+
+    def forward_train(self, scene: torch.Tensor, gripper: torch.Tensor | None, k: torch.Tensor) -> torch.Tensor:
+        """Logits (B, 2, X, Y) of each sample's own rotation ``k`` (B,) int and gripper state.
+
+        scene: (B, 2, X, Y, Z) float32 (TSDF, obstacle) on the scene grid; gripper:
+        (B, 2, gX, gY, gZ) float32 (TSDF at the executed opening, closed), ignored by scene-only.
+        """
+        self._check_scene(scene)
+        b = scene.shape[0]
+        k = torch.as_tensor(k).reshape(-1).long()
+        assert k.shape == (b,), (k.shape, b)
+        theta = k.to("cpu", torch.float64) * (2.0 * math.pi / self.rotations)
+        if self.variant == "scene-only":
+            logits = self.decode(self.encode_scene(scene, theta))
+            return rotate2d(logits, -theta)
+        assert gripper is not None and gripper.shape[0] == b, "gripper: one encoding per sample expected"
+        self._check_gripper(gripper)
+        kernels = self.encode_gripper(gripper)
+        if self.rotate_mode == "kernel":
+            feats = self.encode_scene(scene, None)
+            return self.decode(self.cross_correlate(feats, self.rotate_kernels(kernels, theta), "matched"))
+        feats = self.encode_scene(scene, theta)
+        logits = self.decode(self.cross_correlate(feats, kernels, "matched"))
+        return rotate2d(logits, -theta)
+
+    def forward(self, scene: torch.Tensor, gripper: torch.Tensor | None, k: torch.Tensor) -> torch.Tensor:
+        """Same as :meth:`forward_train`."""
+        return self.forward_train(scene, gripper, k)
+
+    @staticmethod
+    def loss(logits: torch.Tensor, action: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+        """Softmax cross-entropy of the executed action's cell (the paper's loss), mean over the batch.
+
+        logits (B, 2, X, Y); action (B, >=2) int, columns (i, j, ...); label (B,) bool/int (1 = success).
+        """
+        b = logits.shape[0]
+        action = torch.as_tensor(action, device=logits.device).long()
+        assert action.dim() == 2 and action.shape[0] == b and action.shape[1] >= 2, action.shape
+        label = torch.as_tensor(label, device=logits.device).reshape(-1).long()
+        assert label.shape == (b,), label.shape
+        picked = logits[torch.arange(b, device=logits.device), :, action[:, 0], action[:, 1]]
+        return F.cross_entropy(picked, label)
+
+    # ---------------------------------------------------------------- inference
+
+    def _kernels_for(self, gripper: torch.Tensor, key: str | None) -> torch.Tensor:
+        if key is None:
+            return self.encode_gripper(gripper)
+        cache_key = (key, self.weights_version, str(gripper.device))
+        hit = self._kernels.get(cache_key)
+        if hit is not None and hit.shape[0] == gripper.shape[0]:
+            self._kernels.move_to_end(cache_key)
+            return hit
+        kernels = self.encode_gripper(gripper)
+        self._kernels[cache_key] = kernels
+        while len(self._kernels) > _KERNEL_CACHE_SIZE:
+            self._kernels.popitem(last=False)
+        return kernels
+
+    def _as_tensor(self, x, name: str) -> torch.Tensor:
+        dev = next(self.parameters()).device
+        t = torch.as_tensor(x)
+        assert t.dtype == torch.float32, f"{name}: expected float32, got {t.dtype}"
+        return t.to(dev)
+
+    @torch.no_grad()
+    def predict(self, scene, grippers: list, keys: list[str] | None = None) -> torch.Tensor:
+        """Success probabilities of every opening of every gripper at every rotation and cell.
+
+        scene: (2, X, Y, Z) or (B, 2, X, Y, Z) float32 (tensor or array) on the scene grid.
+        grippers: G encodings, each (S_g, 2, gX, gY, gZ) float32 (any content for scene-only).
+        keys: optional G strings naming each encoding; their kernels are cached per
+        (key, weights_version) -- the same key must always mean the same encoding.
+        Returns float32 on the model's device: (G, S_max, R, X, Y) for a 4-D scene or B == 1,
+        (B, G, S_max, R, X, Y) for B > 1; S_max = max S_g, and the openings a gripper lacks
+        (s >= S_g) are padded with probability 0, so argmax and proportional sampling never pick them.
+        Needs eval mode.
+        """
+        if self.training:
+            raise RuntimeError("predict: call model.eval() first (batch norm must use its running statistics)")
+        scene = self._as_tensor(scene, "scene")
+        squeeze = scene.dim() == 4 or scene.shape[0] == 1
+        if scene.dim() == 4:
+            scene = scene.unsqueeze(0)
+        self._check_scene(scene)
+        assert len(grippers) >= 1, "grippers: expected at least one gripper encoding"
+        assert keys is None or len(keys) == len(grippers), (len(keys), len(grippers))
+        out = torch.stack([self._predict_one(scene[b : b + 1], grippers, keys) for b in range(scene.shape[0])])
+        return out[0] if squeeze else out
+
+    def _predict_one(self, scene: torch.Tensor, grippers: list, keys: list[str] | None) -> torch.Tensor:
+        R = self.rotations
+        X, Y = self.scene_shape[:2]
+        counts = [int(torch.as_tensor(g).shape[0]) for g in grippers]
+        s_max = max(counts)
+        thetas = torch.arange(R, dtype=torch.float64) * (2.0 * math.pi / R)
+        if self.variant == "scene-only":
+            maps = torch.cat([self._scene_only_maps(scene, thetas[r : r + self.scene_chunk]) for r in range(0, R, self.scene_chunk)])
+            probs = torch.zeros(len(grippers), s_max, R, X, Y, device=maps.device)
+            for g, n in enumerate(counts):
+                probs[g, :n] = maps.unsqueeze(0)
+            return probs
+        kernels = []
+        for g, enc in enumerate(grippers):
+            enc = self._as_tensor(enc, f"grippers[{g}]")
+            self._check_gripper(enc)
+            kernels.append(self._kernels_for(enc, None if keys is None else keys[g]))
+        kernels = torch.cat(kernels)  # (N, C, Kx, Ky), N = sum of S_g
+        n = kernels.shape[0]
+        if self.rotate_mode == "kernel":
+            maps = self._kernel_rotation_maps(scene, kernels, thetas)
+        else:
+            maps = torch.cat(
+                [self._scene_rotation_maps(scene, kernels, thetas[r : r + self.scene_chunk]) for r in range(0, R, self.scene_chunk)],
+                dim=1,
+            )  # (N, R, X, Y)
+        probs = torch.zeros(len(grippers), s_max, R, X, Y, device=maps.device)
+        start = 0
+        for g, cnt in enumerate(counts):
+            probs[g, :cnt] = maps[start : start + cnt]
+            start += cnt
+        assert start == n
+        return probs
+
+    def _decode_probs(self, corr: torch.Tensor, back: torch.Tensor | None) -> torch.Tensor:
+        """Maps (M, C, Lx, Ly) -> success probabilities (M, X, Y), rotated back by ``back`` (M,) rad if given."""
+        outs = []
+        for m in range(0, corr.shape[0], self.decoder_chunk):
+            logits = self.decode(corr[m : m + self.decoder_chunk])
+            if back is not None:
+                logits = rotate2d(logits, back[m : m + self.decoder_chunk])
+            outs.append(torch.softmax(logits, dim=1)[:, SUCCESS])
+        return torch.cat(outs)
+
+    def _scene_rotation_maps(self, scene: torch.Tensor, kernels: torch.Tensor, thetas: torch.Tensor) -> torch.Tensor:
+        r = len(thetas)
+        feats = self.encode_scene(scene.expand(r, -1, -1, -1, -1), thetas)  # (r, C, Fx, Fy)
+        corr = self.cross_correlate(feats, kernels, "all")  # (r, N, C, Lx, Ly)
+        n = kernels.shape[0]
+        flat = corr.reshape(r * n, *corr.shape[2:])
+        probs = self._decode_probs(flat, -thetas.repeat_interleave(n))
+        return probs.view(r, n, *probs.shape[1:]).transpose(0, 1)
+
+    def _kernel_rotation_maps(self, scene: torch.Tensor, kernels: torch.Tensor, thetas: torch.Tensor) -> torch.Tensor:
+        R, n = len(thetas), kernels.shape[0]
+        feats = self.encode_scene(scene, None)  # (1, C, Fx, Fy)
+        rotated = self.rotate_kernels(kernels.repeat(R, 1, 1, 1), thetas.repeat_interleave(n))  # (R*N, C, K', K')
+        corr = self.cross_correlate(feats, rotated, "all")[0]  # (R*N, C, Lx, Ly)
+        probs = self._decode_probs(corr, None)
+        return probs.view(R, n, *probs.shape[1:]).transpose(0, 1)
+
+    def _scene_only_maps(self, scene: torch.Tensor, thetas: torch.Tensor) -> torch.Tensor:
+        r = len(thetas)
+        feats = self.encode_scene(scene.expand(r, -1, -1, -1, -1), thetas)
+        return self._decode_probs(feats, -thetas)
+
+
+def build_model(cfg: Config) -> AdaGraspNet:
+    """The network for ``cfg`` (model section plus both grids), freshly initialised from torch's RNG."""
+    return AdaGraspNet(cfg.model, cfg.scene_grid, cfg.gripper_grid)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)

@@ -1,0 +1,148 @@
+"""The learner: class-balanced batches from the replay -> augmentation -> loss on the executed
+action -> Adam step -> refreshed scores written back -> versioned weights.
+
+It is a plain object; ``learner.run`` decides whether it lives in this process or in a Ray
+actor. Call loop::
+
+    learner = Learner(cfg, replay, device="cpu")
+    while running:
+        steps = learner.limiter.allowed_steps(replay.total_inserted(), learner.samples)
+        stats = learner.train(steps)
+        if learner.steps_since_publish >= cfg.learner.publish_every:
+            version, state = learner.publish()
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from common.config import Config
+from common.network import build_model
+from learner.augment import augment_batch
+from learner.rate_limit import SamplesPerInsert
+
+
+def epsilon_at(cfg: Config, trials: int) -> float:
+    """Exploration epsilon after ``trials`` collected trials: linear from start to end."""
+    lc = cfg.learner
+    frac = min(1.0, trials / max(1, lc.epsilon_decay_trials))
+    return lc.epsilon_start + frac * (lc.epsilon_end - lc.epsilon_start)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+@dataclass
+class TrainStats:
+    """Running statistics of the learner since it started."""
+
+    steps: int = 0
+    """Optimiser steps taken."""
+    samples: int = 0
+    """Trials drawn from the replay."""
+    version: int = 0
+    """Version of the newest published weights."""
+    loss: float = float("nan")
+    """Mean loss over the last train() call."""
+    pos_score: float = float("nan")
+    """Mean predicted success probability of successful trials in the last train() call."""
+    neg_score: float = float("nan")
+    """Mean predicted success probability of failed trials in the last train() call."""
+    train_seconds: float = 0.0
+    """Wall seconds spent inside train()."""
+    history: list = field(default_factory=list)
+    """(step, loss) after every train() call, for learning curves."""
+
+
+class Learner:
+    """Owns the model, the optimiser and the sampling generator; talks to a replay client."""
+
+    def __init__(self, cfg: Config, replay, device: str | torch.device = "cpu", seed: int = 0):
+        self.cfg = cfg
+        self.replay = replay
+        self.device = torch.device(device)
+        self.model = build_model(cfg).to(self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.learner.lr)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.limiter = SamplesPerInsert(
+            spi=cfg.learner.samples_per_insert, min_replay=cfg.learner.min_replay, batch_size=cfg.learner.batch_size
+        )
+        self.stats = TrainStats()
+        self.steps_since_publish = 0
+
+    def train(self, steps: int) -> TrainStats:
+        """Run ``steps`` optimiser steps; returns the updated statistics."""
+        if steps <= 0:
+            return self.stats
+        t0 = time.perf_counter()
+        self.model.train()
+        losses, pos, neg = [], [], []
+        for _ in range(steps):
+            batch = self.replay.sample(self.cfg.learner.batch_size)
+            scene, action = augment_batch(
+                batch.scene, batch.action, self.cfg.model.rotations, self.cfg.learner.augment_prob, self.generator
+            )
+            scene = scene.to(self.device, non_blocking=True)
+            gripper = batch.gripper.to(self.device, non_blocking=True)
+            action = action.to(self.device)
+            label = batch.label.to(self.device)
+            logits = self.model.forward_train(scene, gripper, action[:, 2])
+            loss = self.model.loss(logits, action, label)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
+            with torch.no_grad():
+                b = torch.arange(logits.shape[0], device=logits.device)
+                prob = torch.softmax(logits[b, :, action[:, 0], action[:, 1]], dim=1)[:, 1].cpu()
+            self.replay.update_scores(batch.indices, prob.numpy())
+            losses.append(float(loss))
+            lab = batch.label.bool()
+            if lab.any():
+                pos.append(float(prob[lab].mean()))
+            if (~lab).any():
+                neg.append(float(prob[~lab].mean()))
+            self.stats.steps += 1
+            self.stats.samples += scene.shape[0]
+            self.steps_since_publish += 1
+        self.stats.loss = sum(losses) / len(losses)
+        self.stats.pos_score = sum(pos) / len(pos) if pos else float("nan")
+        self.stats.neg_score = sum(neg) / len(neg) if neg else float("nan")
+        self.stats.train_seconds += time.perf_counter() - t0
+        self.stats.history.append((self.stats.steps, self.stats.loss))
+        return self.stats
+
+    def publish(self) -> tuple[int, dict]:
+        """A new weights version: (version, CPU state dict)."""
+        self.stats.version += 1
+        self.steps_since_publish = 0
+        state = {k: v.detach().to("cpu", copy=True) for k, v in self.model.state_dict().items()}
+        return self.stats.version, state
+
+    def state_dict(self) -> dict:
+        """Everything needed to resume the learner (model, optimiser, counters, generator)."""
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "steps": self.stats.steps,
+            "samples": self.stats.samples,
+            "version": self.stats.version,
+            "history": list(self.stats.history),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Inverse of :meth:`state_dict`."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.stats.steps = int(state["steps"])
+        self.stats.samples = int(state["samples"])
+        self.stats.version = int(state["version"])
+        self.stats.history = list(state.get("history", []))
+        self.generator.set_state(state["generator"])

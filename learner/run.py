@@ -1,0 +1,110 @@
+"""``python -m launcher [train] --actors N ...``: the main job.
+
+Builds the parts once (replay shards, learner, grasp actors) and decides where they live:
+in this process (``--actors 0``: one in-process actor, for tests and debugging) or as Ray
+actors (``--actors N``, N >= 1; a local Ray instance unless ``--address`` joins a cluster).
+
+Run directory layout::
+
+    RUN/config.yaml            resolved config
+    RUN/replay/shard_XXX/      Zarr v3 groups, one writer each
+    RUN/checkpoints/latest.pt  model, optimiser, step, epsilon, config, replay position
+    RUN/progress.jsonl         one JSON line per progress tick
+    RUN/tb/                    TensorBoard logs
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from common.config import Config, ConfigError, load_config, save_config
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m launcher", description=__doc__.splitlines()[0])
+    p.add_argument("--actors", type=int, default=2, help="grasp actors (0 = everything in this process)")
+    p.add_argument("--shards", type=int, default=None, help="replay shards (default: replay.shards)")
+    p.add_argument("--config", default="default", help="config name (default|paper|cluster|tiny) or YAML path")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--run-dir", default=None, help="run directory (default: runs/<time>)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --run-dir")
+    p.add_argument("--max-trials", type=int, default=None, help="stop after this many trials in the replay")
+    p.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes")
+    p.add_argument("--address", default=None, help="Ray cluster address (e.g. auto); default: a local instance")
+    p.add_argument("--quiet", action="store_true", help="no live progress line")
+    return p.parse_args(argv)
+
+
+@dataclass
+class Limits:
+    """When a run stops."""
+
+    max_trials: int
+    """Trials in the replay (inserted in this run and before it) at which to stop; 0 = none."""
+    max_minutes: float
+    """Wall minutes of this invocation; 0 = none."""
+
+
+def resolve(args: argparse.Namespace) -> tuple[Config, Path, Limits]:
+    """Config (from the run dir when resuming), run directory and limits."""
+    if args.resume:
+        if not args.run_dir:
+            raise ConfigError("--resume: needs --run-dir of the run to continue")
+        run_dir = Path(args.run_dir)
+        if not (run_dir / "config.yaml").is_file():
+            raise ConfigError(f"{run_dir / 'config.yaml'}: not found; nothing to resume")
+        cfg = load_config(run_dir / "config.yaml", overrides=args.set)
+    else:
+        cfg = load_config(args.config, overrides=args.set)
+        run_dir = Path(args.run_dir) if args.run_dir else Path(cfg.run.run_dir) / time.strftime("%Y%m%d-%H%M%S")
+        if (run_dir / "config.yaml").exists():
+            raise ConfigError(f"{run_dir}: already holds a run; pass --resume to continue it")
+    if args.shards is not None:
+        cfg.replay.shards = args.shards
+    if args.max_trials is not None:
+        cfg.run.max_trials = args.max_trials
+    if args.max_minutes is not None:
+        cfg.run.max_minutes = args.max_minutes
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
+    return cfg, run_dir, Limits(cfg.run.max_trials, cfg.run.max_minutes)
+
+
+def cli(argv: list[str]) -> int:
+    args = parse_args(argv)
+    try:
+        cfg, run_dir, limits = resolve(args)
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    from learner.loop import run_distributed, run_local
+
+    print(f"run directory: {run_dir}", flush=True)
+    stop = {"flag": False}
+
+    def on_sigint(signum, frame):  # noqa: ARG001 - signal handler signature
+        if stop["flag"]:
+            raise KeyboardInterrupt
+        stop["flag"] = True
+        print("\nstopping: flushing replay and writing a checkpoint (Ctrl-C again to abort)", flush=True)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        if args.actors == 0:
+            summary = run_local(cfg, run_dir, limits, stop, quiet=args.quiet, resume=args.resume)
+        else:
+            summary = run_distributed(
+                cfg, run_dir, limits, stop, n_actors=args.actors, address=args.address,
+                quiet=args.quiet, resume=args.resume,
+            )
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps(summary), flush=True)
+    return 0

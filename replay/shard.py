@@ -1,0 +1,875 @@
+"""A replay shard: the only writer of one Zarr v3 group holding a FIFO ring of trials.
+
+Layout and decoding rules: replay/schema.py and docs/REPLAY_FORMAT.md. The group opens with
+plain ``zarr.open_group(path, mode="r")``.
+
+Commit protocol (why a crash never exposes a half-written trial): trial ``n`` goes to slot
+``n % capacity``. If that slot still holds the oldest visible trial, the shard first moves
+``commit[0]`` past it (eviction is committed *before* its slot is overwritten), then writes the
+gripper-table row (if the key is new), the volumes and the columns, and only then writes
+``commit = [first, n + 1]``. Zarr's local store writes every chunk to a temporary file and
+renames it, so a chunk is either old or new, never torn. A reader that reads a trial and then
+sees ``commit[0]`` still at or below it has read a consistent trial.
+
+Gripper-table rows are reference-counted by the visible trials that use them (counts are
+rebuilt from the trial columns on open, never stored), so eviction frees a row only when no
+visible trial refers to it.
+
+Usage (in-process; as a Ray actor see replay.client.start_remote_shards)::
+
+    shard = ReplayShard("runs/x/replay/shard_000", cfg)       # creates or reopens
+    n = shard.insert(trial)                                   # trial number in this shard
+    idx = shard.index()                                       # ids, labels, scores of readable trials
+    data = shard.read(idx["trial_id"][:8])                    # int8 codes for a batch
+    shard.update_scores(data["trial_id"], new_scores)
+    reader = ReplayShard(path, read_only=True)                # inspector / export / other process
+"""
+
+from __future__ import annotations
+
+import asyncio
+import fcntl
+import heapq
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+import google_crc32c
+import numpy as np
+import zarr
+from numcodecs import Zstd
+from zarr.codecs import Crc32cCodec, ZstdCodec
+from zarr.core.sync import sync as zarr_sync
+
+from common.config import Config, to_dict
+from common.observation import Observation, TrialMeta
+from replay.sampler import BufferPool
+from replay.schema import (
+    ATTR_KEY,
+    COLUMN_NAMES,
+    HEIGHTMAP_STEP,
+    OBSTACLE_LEVELS,
+    ROOT_KIND,
+    SCHEMA_VERSION,
+    SHARD_KIND,
+    SHARD_NAME,
+    TABLE_COLUMN_NAMES,
+    ArraySpec,
+    EncodedTrial,
+    ReplayCorruptError,
+    ReplayError,
+    ReplayInputError,
+    ReplaySchemaError,
+    array_specs,
+    decode_heightmap,
+    decode_scene,
+    decode_unit,
+    encode_trial,
+    max_errors,
+    meta_from_json,
+)
+
+
+class ReplayCorruptWarning(UserWarning):
+    """A trial was found unreadable and is skipped (one line: path, array, slot, trial)."""
+
+
+@dataclass
+class StoredTrial:
+    """One trial as read back from a shard (volumes decoded to float32)."""
+
+    trial_id: int
+    """Insertion number within the shard."""
+    observation: Observation
+    """Decoded observation (within the quantisation error of the inserted one)."""
+    gripper_key: str
+    """Key of the gripper encoding."""
+    gripper_encoding: np.ndarray
+    """(2, gX, gY, gZ) float32 gripper TSDF/truncation at the executed opening (0) and closed (1)."""
+    action: tuple[int, int, int, int]
+    """(i, j, k, s)."""
+    label: bool
+    """Grasp success."""
+    score: float
+    """Stored score (refreshed by the learner)."""
+    meta: TrialMeta
+    """Metadata, exactly as inserted."""
+    insert_time: float
+    """UNIX time (s) of the commit."""
+
+
+def _chunk_error(e: BaseException) -> str:
+    """First line of an exception, prefixed by its type."""
+    text = str(e).splitlines()[0] if str(e) else ""
+    return f"{type(e).__name__}: {text}"[:200]
+
+
+def shard_capacity(total: int, num_shards: int) -> int:
+    """Per-shard ring size: ceil(total / num_shards)."""
+    return -(-int(total) // int(num_shards))
+
+
+def shard_path(root: str | Path, index: int) -> Path:
+    """Path of shard ``index``'s group under a replay root."""
+    return Path(root) / SHARD_NAME.format(index=index)
+
+
+def read_kind(path: str | Path) -> dict | None:
+    """The replay attributes of the Zarr group at ``path``, or None if it is not a replay group."""
+    p = Path(path)
+    if not (p / "zarr.json").is_file():
+        return None
+    try:
+        g = zarr.open_group(str(p), mode="r")
+    except Exception as e:  # noqa: BLE001 - any unreadable group is reported as one line
+        raise ReplaySchemaError(f"{p}/zarr.json: unreadable group metadata ({_chunk_error(e)})") from None
+    attrs = g.attrs.get(ATTR_KEY)
+    return dict(attrs) if isinstance(attrs, dict) else None
+
+
+def find_shards(path: str | Path) -> list[Path]:
+    """Shard groups at ``path``: the group itself if it is a shard, else the shards of a replay root."""
+    p = Path(path)
+    attrs = read_kind(p)
+    if attrs is None:
+        raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}: not a replay root or shard group")
+    version = attrs.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise ReplaySchemaError(
+            f"{p}: attributes.{ATTR_KEY}.schema_version: expected {SCHEMA_VERSION}, got {version!r}"
+        )
+    if attrs.get("kind") == SHARD_KIND:
+        return [p]
+    shards = []
+    for child in sorted(p.iterdir()):
+        a = read_kind(child) if child.is_dir() else None
+        if a is not None and a.get("kind") == SHARD_KIND:
+            shards.append(child)
+    return shards
+
+
+def ensure_root(root: str | Path, num_shards: int) -> Path:
+    """Create (or check) the replay root group that holds ``num_shards`` shard groups."""
+    p = Path(root)
+    attrs = read_kind(p)
+    if attrs is None:
+        if (p / "zarr.json").exists():
+            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}: existing group is not a replay root")
+        p.mkdir(parents=True, exist_ok=True)
+        zarr.create_group(
+            str(p),
+            attributes={ATTR_KEY: {"kind": ROOT_KIND, "schema_version": SCHEMA_VERSION, "num_shards": num_shards}},
+        )
+        return p
+    if attrs.get("schema_version") != SCHEMA_VERSION:
+        raise ReplaySchemaError(
+            f"{p}: attributes.{ATTR_KEY}.schema_version: expected {SCHEMA_VERSION}, got {attrs.get('schema_version')!r}"
+        )
+    if attrs.get("kind") != ROOT_KIND or attrs.get("num_shards") != num_shards:
+        raise ReplaySchemaError(
+            f"{p}: attributes.{ATTR_KEY}.num_shards: replay root has {attrs.get('num_shards')!r} shards, "
+            f"config asks for {num_shards}"
+        )
+    return p
+
+
+class _ChunkFiles:
+    """Reads one-trial chunks of an array straight from their files into numpy.
+
+    Used when the array's codec chain is exactly the one this schema writes (bytes -> zstd ->
+    crc32c) on a local directory; it decodes each chunk once, into its final buffer, where
+    ``zarr.Array.__getitem__`` costs ~2 ms of copies per 5 MB chunk. Any other chain falls back
+    to zarr. Errors are returned as one-line strings: missing file, checksum, decode.
+    """
+
+    def __init__(self, arr: zarr.Array, array_dir: Path) -> None:
+        self.arr = arr
+        self.dir = array_dir
+        meta = arr.metadata.to_dict()
+        names = [c["name"] for c in meta["codecs"]]
+        self.direct = names == ["bytes", "zstd", "crc32c"] and (array_dir / "zarr.json").is_file()
+        self.chunk_shape = tuple(arr.chunks[1:])
+        self.dtype = np.dtype(meta["data_type"])
+        self.zeros = (0,) * (len(arr.shape) - 1)
+        self._zstd = Zstd()
+
+    def read(self, index: int, out: np.ndarray | None = None) -> np.ndarray | str:
+        """The chunk of entry ``index`` as an array of shape chunks[1:] (into ``out`` if given), or an error string."""
+        if not self.direct:
+            try:
+                out = self.arr[index]
+            except Exception as e:  # noqa: BLE001
+                return _chunk_error(e)
+            # the schema's fill values are never written, so a fill value means the chunk is missing
+            return "chunk missing (fill value)" if out.flat[0] == self.arr.fill_value else out
+        key = self.arr.metadata.encode_chunk_key((index,) + self.zeros)
+        try:
+            raw = (self.dir / key).read_bytes()
+        except FileNotFoundError:
+            return f"chunk file {key} missing"
+        except OSError as e:
+            return _chunk_error(e)
+        if len(raw) < 4 or np.uint32(google_crc32c.value(raw[:-4])).tobytes() != raw[-4:]:
+            return f"chunk file {key}: checksum mismatch"
+        if out is None:
+            out = np.empty(self.chunk_shape, self.dtype)
+        try:
+            self._zstd.decode(raw[:-4], out=out)
+        except Exception as e:  # noqa: BLE001
+            return f"chunk file {key}: {_chunk_error(e)}"
+        return out
+
+
+class ReplayShard:
+    """The only writer of one Zarr group: a FIFO ring of ``capacity`` trials plus a gripper table.
+
+    ``read_only=True`` opens an existing shard for reading (any process, while a writer appends);
+    :meth:`refresh` picks up new commits. Not thread-safe: one caller at a time (a Ray actor
+    serialises its calls).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        cfg: Config | None = None,
+        *,
+        shard_index: int = 0,
+        num_shards: int = 1,
+        read_only: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        self.read_only = read_only
+        self._lock_fd: int | None = None
+        exists = (self.path / "zarr.json").is_file()
+        if not exists:
+            if read_only:
+                raise ReplaySchemaError(f"{self.path}: zarr.json: no replay shard here")
+            if cfg is None:
+                raise ReplaySchemaError(f"{self.path}: cannot create a shard without a config")
+            self._create(cfg, shard_index, num_shards)
+        self._open(cfg, shard_index, num_shards)
+
+    # ----------------------------------------------------------------------------------
+    # Creation and opening
+    # ----------------------------------------------------------------------------------
+
+    def _create(self, cfg: Config, shard_index: int, num_shards: int) -> None:
+        rc = cfg.replay
+        capacity = shard_capacity(rc.capacity, num_shards)
+        table_rows = capacity + 1
+        specs = array_specs(
+            capacity, table_rows, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
+        )
+        self.path.mkdir(parents=True, exist_ok=True)
+        group = zarr.create_group(str(self.path))
+        compressors = [ZstdCodec(level=rc.compression_level), Crc32cCodec()]
+        for spec in specs:
+            group.create_array(
+                spec.name,
+                shape=spec.shape,
+                chunks=spec.chunks,
+                dtype=str if spec.dtype == "string" else spec.dtype,
+                fill_value=spec.fill,
+                compressors=compressors,
+                attributes=spec.attributes(),
+            )
+        group["commit"][:] = np.array([0, 0], np.int64)
+        scene_grid = to_dict(cfg.scene_grid)
+        scene_grid["truncation"] = cfg.scene_grid.truncation
+        gripper_grid = to_dict(cfg.gripper_grid)
+        gripper_grid["truncation"] = cfg.gripper_grid.truncation
+        attrs = {
+            "kind": SHARD_KIND,
+            "schema_version": SCHEMA_VERSION,
+            "shard_index": shard_index,
+            "num_shards": num_shards,
+            "capacity": capacity,
+            "table_rows": table_rows,
+            "chunk_trials": min(rc.chunk_trials, capacity),
+            "scene_shape": list(cfg.scene_grid.shape),
+            "gripper_shape": list(cfg.gripper_grid.shape),
+            "tsdf_levels": rc.tsdf_levels,
+            "obstacle_levels": OBSTACLE_LEVELS,
+            "heightmap_step_m": HEIGHTMAP_STEP,
+            "max_abs_error": max_errors(rc.tsdf_levels),
+            "rotations": cfg.model.rotations,
+            "grasp_depth_m": cfg.sim.grasp_depth,
+            "scene_grid": scene_grid,
+            "gripper_grid": gripper_grid,
+            "created": time.time(),
+            "visibility": "trial t is visible iff commit[0] <= t < commit[1] and trial_id[t % capacity] == t",
+            "arrays": {
+                s.name: {"shape": list(s.shape), "chunks": list(s.chunks), "dtype": s.dtype, "units": s.units}
+                for s in specs
+            },
+        }
+        group.attrs[ATTR_KEY] = attrs  # last: a group without it is an incomplete creation
+
+    def _open(self, cfg: Config | None, shard_index: int, num_shards: int) -> None:
+        p = self.path
+        try:
+            group = zarr.open_group(str(p), mode="r" if self.read_only else "r+")
+        except Exception as e:  # noqa: BLE001
+            raise ReplaySchemaError(f"{p}/zarr.json: cannot open group ({_chunk_error(e)})") from None
+        attrs = group.attrs.get(ATTR_KEY)
+        if not isinstance(attrs, dict):
+            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}: missing (not a replay shard, or creation was cut off)")
+        version = attrs.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.schema_version: expected {SCHEMA_VERSION}, got {version!r}")
+        if attrs.get("kind") != SHARD_KIND:
+            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.kind: expected {SHARD_KIND!r}, got {attrs.get('kind')!r}")
+        self.attrs = dict(attrs)
+        self.capacity = int(attrs["capacity"])
+        self.table_rows = int(attrs["table_rows"])
+        self.chunk_trials = int(attrs["chunk_trials"])
+        self.levels = int(attrs["tsdf_levels"])
+        self.scene_shape = tuple(int(v) for v in attrs["scene_shape"])
+        self.gripper_shape = tuple(int(v) for v in attrs["gripper_shape"])
+        self.shard_index = int(attrs["shard_index"])
+        if cfg is not None:
+            expected = {
+                "capacity": shard_capacity(cfg.replay.capacity, num_shards),
+                "scene_shape": list(cfg.scene_grid.shape),
+                "gripper_shape": list(cfg.gripper_grid.shape),
+                "tsdf_levels": cfg.replay.tsdf_levels,
+                "num_shards": num_shards,
+                "shard_index": shard_index,
+            }
+            for key, want in expected.items():
+                if attrs.get(key) != want:
+                    raise ReplaySchemaError(
+                        f"{p}: attributes.{ATTR_KEY}.{key}: stored {attrs.get(key)!r}, config gives {want!r}"
+                    )
+        specs = array_specs(
+            self.capacity, self.table_rows, self.scene_shape, self.gripper_shape, self.chunk_trials, self.levels
+        )
+        self._specs = {s.name: s for s in specs}
+        self._arrays: dict[str, zarr.Array] = {}
+        for spec in specs:
+            self._arrays[spec.name] = self._check_array(group, spec)
+        self._chunks = {
+            s.name: _ChunkFiles(self._arrays[s.name], p / s.name) for s in specs if s.per_trial_chunk
+        }
+        if not self.read_only:
+            self._take_lock()
+            self._remove_partial_files()
+        self._staging = BufferPool(max_buffers=64)
+        self._problems: list[str] = []
+        self._corrupt: dict[int, str] = {}
+        self._corrupt_skipped = 0
+        self._duplicates = 0
+        self._inserts = 0
+        self._load_state()
+
+    def _check_array(self, group: zarr.Group, spec: ArraySpec) -> zarr.Array:
+        p = self.path
+        try:
+            arr = group[spec.name]
+        except KeyError:
+            raise ReplaySchemaError(f"{p}/{spec.name}: array missing") from None
+        except Exception as e:  # noqa: BLE001
+            raise ReplaySchemaError(f"{p}/{spec.name}/zarr.json: unreadable ({_chunk_error(e)})") from None
+        if not isinstance(arr, zarr.Array):
+            raise ReplaySchemaError(f"{p}/{spec.name}: expected an array, found a group")
+        dtype = arr.metadata.to_dict()["data_type"]
+        if dtype != spec.dtype:
+            raise ReplaySchemaError(f"{p}/{spec.name}: data_type: expected {spec.dtype}, got {dtype}")
+        if tuple(arr.shape) != spec.shape:
+            raise ReplaySchemaError(f"{p}/{spec.name}: shape: expected {spec.shape}, got {tuple(arr.shape)}")
+        if tuple(arr.chunks) != spec.chunks:
+            raise ReplaySchemaError(f"{p}/{spec.name}: chunks: expected {spec.chunks}, got {tuple(arr.chunks)}")
+        return arr
+
+    def _take_lock(self) -> None:
+        """Advisory exclusive lock on the group's zarr.json: one writer per shard, released on exit or crash."""
+        fd = os.open(self.path / "zarr.json", os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise ReplayError(f"{self.path}: another process is writing this shard") from None
+        self._lock_fd = fd
+
+    def _remove_partial_files(self) -> None:
+        """Temporary files of writes cut off by a crash (never visible to zarr) are removed."""
+        for f in self.path.rglob("*.partial"):
+            f.unlink(missing_ok=True)
+
+    def close(self) -> None:
+        """Release the writer lock. The shard object must not be used afterwards."""
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def __enter__(self) -> "ReplayShard":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        if getattr(self, "_lock_fd", None) is not None:
+            os.close(self._lock_fd)
+
+    # ----------------------------------------------------------------------------------
+    # State in memory
+    # ----------------------------------------------------------------------------------
+
+    def _problem(self, message: str) -> None:
+        self._problems.append(message)
+        warnings.warn(message, ReplayCorruptWarning, stacklevel=3)
+
+    def _read_commit(self) -> tuple[int, int]:
+        try:
+            first, end = (int(v) for v in self._arrays["commit"][:])
+        except Exception as e:  # noqa: BLE001
+            raise ReplayCorruptError(f"{self.path}/commit: unreadable ({_chunk_error(e)})") from None
+        if first < 0 or end < first or end - first > self.capacity:
+            raise ReplayCorruptError(f"{self.path}/commit: invalid value [{first}, {end}) (missing chunk?)")
+        return first, end
+
+    def _load_column(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Whole column in memory, and a bool mask of entries whose chunk could not be read."""
+        arr, spec = self._arrays[name], self._specs[name]
+        bad = np.zeros(spec.shape[0], bool)
+        try:
+            data = arr[:]
+        except Exception:  # noqa: BLE001 - fall back to chunk by chunk to isolate the bad ones
+            if spec.dtype == "string":
+                data = np.full(spec.shape, spec.fill, dtype=object)
+            else:
+                data = np.full(spec.shape, spec.fill, dtype=spec.dtype)
+            step = spec.chunks[0]
+            for c0 in range(0, spec.shape[0], step):
+                c1 = min(c0 + step, spec.shape[0])
+                try:
+                    data[c0:c1] = arr[c0:c1]
+                except Exception as e:  # noqa: BLE001
+                    bad[c0:c1] = True
+                    self._problem(
+                        f"{self.path}/{name}: chunk of slots {c0}..{c1 - 1} unreadable ({_chunk_error(e)}); "
+                        f"those trials are skipped"
+                    )
+        if spec.dtype == "string":
+            data = np.asarray(data, dtype=object)
+        return data, bad
+
+    def _load_state(self) -> None:
+        c = self.capacity
+        self._first, self._end = self._read_commit()
+        self._col: dict[str, np.ndarray] = {}
+        bad = np.zeros(c, bool)
+        bad_reason = np.full(c, "", dtype=object)
+        for name in COLUMN_NAMES:
+            data, b = self._load_column(name)
+            self._col[name] = data
+            bad_reason[b & ~bad] = name
+            bad |= b
+        self._table: dict[str, np.ndarray] = {}
+        bad_rows = np.zeros(self.table_rows, bool)
+        for name in TABLE_COLUMN_NAMES:
+            data, b = self._load_column(name)
+            self._table[name] = data
+            bad_rows |= b
+        if self.read_only:
+            # a live writer may have evicted trials while the columns were read: those are gone, not lost
+            self._first = max(self._first, self._read_commit()[0])
+        self._lost = np.zeros(c, bool)
+        ids = np.arange(self._first, self._end, dtype=np.int64)
+        slots = ids % c
+        col = self._col
+        checks = {
+            "trial_id": col["trial_id"][slots] == ids,
+            "action": (col["action"][slots] >= 0).all(1),
+            "label": col["label"][slots] <= 1,
+            "score": np.isfinite(col["score"][slots]),
+            "insert_time": np.isfinite(col["insert_time"][slots]),
+            "meta": np.array([bool(m) for m in col["meta"][slots]], bool),
+            "gripper_row": (col["gripper_row"][slots] >= 0) & (col["gripper_row"][slots] < self.table_rows),
+        }
+        self._lost[slots[bad[slots]]] = True
+        for name, ok in checks.items():
+            newly = ~ok & ~self._lost[slots]
+            if newly.any():
+                self._problem(
+                    f"{self.path}/{name}: {int(newly.sum())} visible trial(s) with missing values "
+                    f"(first: trial {int(ids[newly][0])}); they are skipped"
+                )
+            self._lost[slots[~ok]] = True
+        rows = col["gripper_row"][slots]
+        row_ok = np.zeros(len(slots), bool)
+        in_range = (rows >= 0) & (rows < self.table_rows)
+        row_ok[in_range] = ~bad_rows[rows[in_range]] & np.array(
+            [bool(k) for k in self._table["gripper_table_key"][rows[in_range]]], bool
+        )
+        lost_by_row = ~row_ok & ~self._lost[slots]
+        if lost_by_row.any():
+            self._problem(
+                f"{self.path}/gripper_table_key: {int(lost_by_row.sum())} visible trial(s) refer to an unreadable or "
+                f"empty gripper-table row; they are skipped"
+            )
+        self._lost[slots[~row_ok]] = True
+        # Reference counts, key -> row map and free rows, from the readable visible trials.
+        self._refcount = np.zeros(self.table_rows, np.int64)
+        self._slot_row = np.full(c, -1, np.int64)
+        self._row_of: dict[tuple[str, int], int] = {}
+        self._tokens: dict[tuple[int, int], int] = {}
+        for t, s in zip(ids.tolist(), slots.tolist()):
+            if self._lost[s]:
+                continue
+            r = int(col["gripper_row"][s])
+            self._refcount[r] += 1
+            self._slot_row[s] = r
+            key = (str(self._table["gripper_table_key"][r]), int(self._table["gripper_table_opening"][r]))
+            self._row_of.setdefault(key, r)
+            tok = tuple(int(v) for v in col["insert_token"][s])
+            self._tokens[tok] = t
+        self._free_rows = [r for r in range(self.table_rows) if self._refcount[r] == 0]
+        heapq.heapify(self._free_rows)
+
+    def refresh(self) -> None:
+        """Re-read the commit and columns (readers following a live writer)."""
+        self._load_state()
+
+    # ----------------------------------------------------------------------------------
+    # Writing
+    # ----------------------------------------------------------------------------------
+
+    def _require_writer(self) -> None:
+        if self.read_only or self._lock_fd is None:
+            raise ReplayError(f"{self.path}: shard is open read-only")
+
+    def _write_commit(self, first: int, end: int) -> None:
+        self._arrays["commit"][:] = np.array([first, end], np.int64)
+        self._first, self._end = first, end
+
+    def _column_write(self, name: str, index: int, table: bool = False):
+        """Coroutine writing the whole chunk of column ``name`` that holds ``index``, from memory."""
+        spec = self._specs[name]
+        step = spec.chunks[0]
+        c0 = (index // step) * step
+        c1 = min(c0 + step, spec.shape[0])
+        data = (self._table if table else self._col)[name][c0:c1]
+        return self._arrays[name].async_array.setitem(slice(c0, c1), data)
+
+    @staticmethod
+    def _gather(coros: Iterable) -> list:
+        """Run zarr write/read coroutines concurrently on zarr's event loop; exceptions are returned."""
+
+        async def run() -> list:
+            return await asyncio.gather(*coros, return_exceptions=True)
+
+        return zarr_sync(run())
+
+    def _check_record(self, rec: EncodedTrial) -> None:
+        x, y, z = self.scene_shape
+        w = rec.where
+        if rec.levels != self.levels:
+            raise ReplayInputError(f"{w}: levels: encoded with {rec.levels}, shard {self.path} stores {self.levels}")
+        if rec.scene.shape != (2, x, y, z) or rec.scene.dtype != np.int8:
+            raise ReplayInputError(f"{w}: observation.tsdf: shape {rec.scene.shape[1:]}, shard {self.path} stores {(x, y, z)}")
+        if rec.heightmap.shape != (x, y) or rec.valid.shape != (x, y):
+            raise ReplayInputError(f"{w}: observation.heightmap: shape {rec.heightmap.shape}, expected {(x, y)}")
+        if rec.gripper.shape != (2,) + self.gripper_shape or rec.gripper.dtype != np.int8:
+            raise ReplayInputError(
+                f"{w}: gripper_encoding: shape {rec.gripper.shape[1:]}, shard {self.path} stores {self.gripper_shape}"
+            )
+        i, j, k, s = rec.action
+        if not (0 <= i < x and 0 <= j < y and k >= 0 and s >= 0):
+            raise ReplayInputError(f"{w}: action: {rec.action} outside the scene grid {(x, y)}")
+
+    def insert(self, trial) -> int:
+        """Quantise and store a :class:`common.observation.Trial`; returns its trial number in this shard."""
+        token = (-1, self._end)
+        return self.insert_encoded(encode_trial(trial, self.levels, token))
+
+    def insert_encoded(self, rec: EncodedTrial) -> int:
+        """Store an encoded trial (see replay.schema.encode_trial); returns its trial number.
+
+        A repeated token (a retried request) returns the trial number of the first insert.
+        """
+        self._require_writer()
+        self._check_record(rec)
+        if rec.token in self._tokens and rec.token[0] >= 0:
+            self._duplicates += 1
+            return self._tokens[rec.token]
+        c = self.capacity
+        n = self._end
+        slot = n % c
+        if n - c >= self._first:
+            self._write_commit(n - c + 1, n)
+            self._release_slot(slot, n - c)
+        key = (rec.gripper_key, int(rec.action[3]))
+        row = self._row_of.get(key)
+        new_row = row is None
+        if new_row:
+            row = heapq.heappop(self._free_rows)
+        col = self._col
+        col["trial_id"][slot] = n
+        col["insert_time"][slot] = time.time()
+        col["insert_token"][slot] = rec.token
+        col["action"][slot] = rec.action
+        col["gripper_row"][slot] = row
+        col["label"][slot] = int(rec.label)
+        col["score"][slot] = rec.score
+        col["meta"][slot] = rec.meta_json
+        arrays = self._arrays
+        coros = [
+            arrays["scene"].async_array.setitem(slot, rec.scene),
+            arrays["heightmap"].async_array.setitem(slot, rec.heightmap),
+            arrays["valid"].async_array.setitem(slot, rec.valid),
+        ]
+        coros += [self._column_write(name, slot) for name in COLUMN_NAMES]
+        if new_row:
+            self._table["gripper_table_key"][row] = key[0]
+            self._table["gripper_table_opening"][row] = key[1]
+            coros.append(arrays["gripper_table"].async_array.setitem(row, rec.gripper))
+            coros += [self._column_write(name, row, table=True) for name in TABLE_COLUMN_NAMES]
+        errors = [e for e in self._gather(coros) if isinstance(e, BaseException)]
+        if errors:
+            if new_row:
+                heapq.heappush(self._free_rows, row)
+            raise ReplayError(f"{self.path}: writing trial {n} failed ({_chunk_error(errors[0])}); nothing committed")
+        self._write_commit(self._first, n + 1)
+        self._refcount[row] += 1
+        self._slot_row[slot] = row
+        if new_row:
+            self._row_of[key] = row
+        self._tokens[rec.token] = n
+        self._lost[slot] = False
+        self._inserts += 1
+        return n
+
+    def _release_slot(self, slot: int, trial: int) -> None:
+        """Bookkeeping after the trial in ``slot`` was evicted (its commit is already written)."""
+        self._corrupt.pop(trial, None)
+        row = int(self._slot_row[slot])
+        self._slot_row[slot] = -1
+        if row >= 0:
+            self._refcount[row] -= 1
+            if self._refcount[row] == 0:
+                key = (str(self._table["gripper_table_key"][row]), int(self._table["gripper_table_opening"][row]))
+                if self._row_of.get(key) == row:
+                    del self._row_of[key]
+                heapq.heappush(self._free_rows, row)
+        tok = tuple(int(v) for v in self._col["insert_token"][slot])
+        if self._tokens.get(tok) == trial:
+            del self._tokens[tok]
+
+    def update_scores(self, trial_ids, scores) -> int:
+        """Write refreshed scores of visible trials; ids evicted meanwhile are ignored. Returns how many."""
+        self._require_writer()
+        ids = np.asarray(trial_ids, dtype=np.int64).reshape(-1)
+        sc = np.asarray(scores, dtype=np.float64).reshape(-1)
+        if ids.shape != sc.shape:
+            raise ReplayInputError(f"{self.path}: update_scores: {ids.shape[0]} ids but {sc.shape[0]} scores")
+        bad = ~(np.isfinite(sc) & (sc >= 0) & (sc <= 1))
+        if bad.any():
+            raise ReplayInputError(
+                f"{self.path}: update_scores.scores: expected probabilities in [0, 1], got {float(sc[bad][0])!r} "
+                f"for trial {int(ids[bad][0])}"
+            )
+        live = self._live_mask(ids)
+        slots = ids[live] % self.capacity
+        if not len(slots):
+            return 0
+        self._col["score"][slots] = sc[live]
+        step = self._specs["score"].chunks[0]
+        chunk_heads = sorted({int(s) // step * step for s in slots})
+        errors = [e for e in self._gather(self._column_write("score", h) for h in chunk_heads) if isinstance(e, BaseException)]
+        if errors:
+            raise ReplayError(f"{self.path}/score: write failed ({_chunk_error(errors[0])})")
+        return int(live.sum())
+
+    # ----------------------------------------------------------------------------------
+    # Reading
+    # ----------------------------------------------------------------------------------
+
+    def _live_mask(self, ids: np.ndarray) -> np.ndarray:
+        """Which trial ids are visible, intact and not known to be corrupt."""
+        slots = ids % self.capacity
+        ok = (ids >= self._first) & (ids < self._end) & (self._col["trial_id"][slots] == ids) & ~self._lost[slots]
+        if self._corrupt:
+            ok &= ~np.isin(ids, np.fromiter(self._corrupt, np.int64))
+        return ok
+
+    def visible_ids(self) -> np.ndarray:
+        """(n,) int64 trial numbers that are visible and readable, oldest first."""
+        ids = np.arange(self._first, self._end, dtype=np.int64)
+        return ids[self._live_mask(ids)]
+
+    def __len__(self) -> int:
+        return int(len(self.visible_ids()))
+
+    def size(self) -> int:
+        """Number of readable visible trials."""
+        return len(self)
+
+    def index(self) -> dict[str, np.ndarray]:
+        """What a sampler needs: trial_id (n,) int64, label (n,) bool, score (n,) float32."""
+        ids = self.visible_ids()
+        slots = ids % self.capacity
+        return {
+            "trial_id": ids,
+            "label": self._col["label"][slots] == 1,
+            "score": self._col["score"][slots].astype(np.float32),
+        }
+
+    def column(self, name: str, trial_ids) -> np.ndarray:
+        """Values of a per-trial column (see COLUMN_NAMES) for the given visible trials."""
+        ids = np.asarray(trial_ids, np.int64)
+        return self._col[name][ids % self.capacity]
+
+    def _mark_corrupt(self, name: str, trial: int, index: int, err: str) -> str:
+        """Remember an unreadable trial (warned once); returns the one-line description."""
+        line = f"{self.path}/{name}: chunk {index} of trial {trial} unreadable ({err})"
+        if trial not in self._corrupt:
+            self._corrupt[trial] = line
+            self._problem(f"{line}; trial skipped")
+        return line
+
+    def read(self, trial_ids) -> dict[str, Any]:
+        """Quantised batch data of the given trials, in the given order, skipping unreadable ones.
+
+        Returns trial_id (n,) int64, scene: list of n (2, X, Y, Z) int8 codes, gripper: list of n
+        (2, gX, gY, gZ) int8 codes, action (n, 4) int64, label (n,) bool, score (n,) float32, and
+        missing: list of requested ids that were evicted or are corrupt (counted, warned once).
+        """
+        ids = np.asarray(trial_ids, dtype=np.int64).reshape(-1)
+        live = self._live_mask(ids)
+        ids_live = ids[live]
+        slots = ids_live % self.capacity
+        rows = self._col["gripper_row"][slots].astype(np.int64)
+        n = len(ids_live)
+        keep = np.ones(n, bool)
+        scenes: list = [None] * n
+        grippers: list = [None] * n
+        for b in range(n):
+            t = int(ids_live[b])
+            scenes[b] = self._chunks["scene"].read(
+                int(slots[b]), out=self._staging.take(self._chunks["scene"].chunk_shape, np.int8)
+            )
+            if isinstance(scenes[b], str):
+                self._mark_corrupt("scene", t, int(slots[b]), scenes[b])
+                keep[b] = False
+                continue
+            grippers[b] = self._chunks["gripper_table"].read(int(rows[b]))
+            if isinstance(grippers[b], str):
+                self._mark_corrupt("gripper_table", t, int(rows[b]), grippers[b])
+                keep[b] = False
+        if self.read_only:
+            self._first, self._end = self._read_commit()
+            keep &= ids_live >= self._first
+        self._corrupt_skipped += int((~keep).sum())
+        sel = np.flatnonzero(keep)
+        col = self._col
+        out_slots = slots[sel]
+        missing = [int(t) for t in ids[~live]] + [int(t) for t in ids_live[~keep]]
+        return {
+            "trial_id": ids_live[sel],
+            "scene": [scenes[b] for b in sel],
+            "gripper": [grippers[b] for b in sel],
+            "action": col["action"][out_slots].astype(np.int64),
+            "label": col["label"][out_slots] == 1,
+            "score": col["score"][out_slots].astype(np.float32),
+            "missing": missing,
+        }
+
+    def get_trial(self, trial_id: int) -> StoredTrial:
+        """One complete trial, decoded; ReplayError if not visible, ReplayCorruptError if unreadable."""
+        t = int(trial_id)
+        if t in self._corrupt:
+            raise ReplayCorruptError(self._corrupt[t])
+        if not self._live_mask(np.array([t]))[0]:
+            raise ReplayError(f"{self.path}: trial {t}: not visible (visible: {self._first}..{self._end - 1})")
+        slot = t % self.capacity
+        row = int(self._col["gripper_row"][slot])
+        names = ("scene", "heightmap", "valid", "gripper_table")
+        results = []
+        for nm, i in zip(names, (slot, slot, slot, row)):
+            res = self._chunks[nm].read(i)
+            if isinstance(res, str):
+                raise ReplayCorruptError(self._mark_corrupt(nm, t, i, res))
+            results.append(res)
+        if self.read_only:
+            self._first, self._end = self._read_commit()
+            if t < self._first:
+                raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
+        scene_q, hm_q, valid_q, grip_q = results
+        scene = decode_scene(scene_q, self.levels)
+        obs = Observation(
+            tsdf=scene[0], obstacle=scene[1], heightmap=decode_heightmap(hm_q), valid=valid_q.astype(bool)
+        ).validate()
+        col = self._col
+        return StoredTrial(
+            trial_id=t,
+            observation=obs,
+            gripper_key=str(self._table["gripper_table_key"][row]),
+            gripper_encoding=decode_unit(grip_q, self.levels),
+            action=tuple(int(v) for v in col["action"][slot]),
+            label=bool(col["label"][slot] == 1),
+            score=float(col["score"][slot]),
+            meta=meta_from_json(str(col["meta"][slot])),
+            insert_time=float(col["insert_time"][slot]),
+        )
+
+    # ----------------------------------------------------------------------------------
+    # Introspection
+    # ----------------------------------------------------------------------------------
+
+    def info(self) -> dict:
+        """The shard's schema attributes (shapes, quantisation, grids, capacity)."""
+        return dict(self.attrs)
+
+    def stats(self) -> dict:
+        """Counters: visible, successes, failures, lost, corrupt, duplicates, table rows in use."""
+        idx = self.index()
+        ids = np.arange(self._first, self._end)
+        return {
+            "shard": self.shard_index,
+            "path": str(self.path),
+            "capacity": self.capacity,
+            "first": self._first,
+            "end": self._end,
+            "visible": int(len(idx["trial_id"])),
+            "successes": int(idx["label"].sum()),
+            "failures": int((~idx["label"]).sum()),
+            "lost": int(self._lost[ids % self.capacity].sum()) if len(ids) else 0,
+            "corrupt": len(self._corrupt),
+            "corrupt_skipped": self._corrupt_skipped,
+            "duplicates_skipped": self._duplicates,
+            "table_rows_used": int((self._refcount > 0).sum()),
+            "problems": list(self._problems),
+        }
+
+    def problems(self) -> list[str]:
+        """One line per unreadable chunk or lost trial found so far."""
+        return list(self._problems)
+
+
+def disk_usage(path: str | Path) -> tuple[int, int]:
+    """(apparent bytes, allocated bytes) of all files under ``path``."""
+    apparent = allocated = 0
+    for root, _, files in os.walk(path):
+        for f in files:
+            st = os.stat(os.path.join(root, f))
+            apparent += st.st_size
+            allocated += st.st_blocks * 512
+    return apparent, allocated
+
+
+__all__ = [
+    "ReplayShard",
+    "ReplayCorruptWarning",
+    "StoredTrial",
+    "disk_usage",
+    "ensure_root",
+    "find_shards",
+    "shard_capacity",
+    "shard_path",
+    "read_kind",
+]

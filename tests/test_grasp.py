@@ -1,0 +1,135 @@
+"""Grasp primitive and label: physics sanity on a centred cube, and the label rules."""
+
+import numpy as np
+import pybullet
+import pytest
+
+from actors.grasp import execute_grasp, grasp_pose, label_scene
+from actors.simulation import Simulation
+from common.config import load_config
+from common.geometry import cell_to_world, world_to_cell
+from common.gripper import get_gripper
+
+GRIPPER = "parallel_jaw-0"
+CUBE = 0.04
+
+
+def _centred_cube_trial(seed: int):
+    """A 4 cm cube with random yaw and a sub-cell offset at the grid centre; a grasp at a random
+    rotation on its cell, widest opening. Returns the outcome."""
+    cfg = load_config("default")
+    rng = np.random.default_rng(seed)
+    with Simulation(cfg, seed=seed) as sim:
+        gripper = sim.load_gripper(get_gripper(GRIPPER), 1.0)
+        i, j = world_to_cell(sim.grid, 0.0, 0.0)
+        xy = cell_to_world(sim.grid, i, j) + rng.uniform(-0.002, 0.002, size=2)
+        sim.add_box([CUBE] * 3, [xy[0], xy[1], CUBE / 2], yaw=rng.uniform(0, 2 * np.pi))
+        sim.settle()
+        obs = sim.observe()
+        k = int(rng.integers(cfg.model.rotations))
+        outcome = execute_grasp(sim, gripper, (int(i), int(j), k, 0), (1.0,), obs.heightmap)
+        assert not sim.objects, "a lifted cube is removed from the scene"
+        return outcome
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_parallel_jaw_lifts_centred_cube(seed):
+    outcome = _centred_cube_trial(seed)
+    assert outcome.success, outcome
+    assert outcome.lifted_targets == ("primitive/box",)
+    assert outcome.stop_z > 0.0
+
+
+@pytest.mark.slow
+def test_parallel_jaw_lifts_centred_cube_10_seeds():
+    outcomes = [_centred_cube_trial(seed) for seed in range(10)]
+    successes = sum(o.success for o in outcomes)
+    print(f"physics sanity: {successes}/10 centred cubes lifted")
+    assert successes >= 9, [o for o in outcomes if not o.success]
+
+
+def test_grasp_pose_follows_action_contract(default_cfg):
+    with Simulation(default_cfg, seed=0) as sim:
+        hm = np.zeros(sim.grid.shape[:2], dtype=np.float32)
+        hm[50, 40] = 0.08
+        pos, yaw, opening = grasp_pose(sim, (50, 40, 4, 1), (0.5, 0.75), hm)
+        np.testing.assert_allclose(pos[:2], cell_to_world(sim.grid, 50, 40))
+        assert pos[2] == pytest.approx(0.08 - default_cfg.sim.grasp_depth)
+        assert yaw == pytest.approx(2 * np.pi * 4 / default_cfg.model.rotations)
+        assert opening == 0.75
+        pos, _, _ = grasp_pose(sim, (0, 0, 0, 0), (1.0,), hm)
+        assert pos[2] == 0.0, "the grasp height is clipped to the table"
+        lim = default_cfg.sim.fence_half_extent
+        assert np.all(np.abs(pos[:2]) <= lim + 1e-12), "the grasp centre is clipped to the fence square"
+        with pytest.raises(ValueError, match="opening index"):
+            grasp_pose(sim, (50, 40, 0, 2), (0.5, 0.75), hm)
+
+
+def test_label_rules(default_cfg):
+    """Exactly one lifted target and no lifted obstacle succeeds; anything else fails."""
+    with Simulation(default_cfg, seed=0) as sim:
+        t1 = sim.add_box([0.03] * 3, [0.05, 0.0, 0.015])
+        t2 = sim.add_box([0.03] * 3, [-0.05, 0.0, 0.015])
+        ob = sim.add_box([0.03] * 3, [0.0, 0.06, 0.015], role="obstacle")
+        assert label_scene(sim) == (False, (), ())
+
+        def lift(body):
+            pybullet.resetBasePositionAndOrientation(body, [0.0, 0.0, 0.3], [0, 0, 0, 1], physicsClientId=sim.client)
+
+        lift(t1)
+        assert label_scene(sim) == (True, (t1,), ())
+        lift(ob)
+        assert label_scene(sim) == (False, (t1,), (ob,)), "a lifted obstacle fails the grasp"
+        pybullet.resetBasePositionAndOrientation(ob, [0.0, 0.06, 0.015], [0, 0, 0, 1], physicsClientId=sim.client)
+        lift(t2)
+        assert label_scene(sim) == (False, (t1, t2), ()), "two lifted targets fail the grasp"
+
+
+def test_grasping_an_obstacle_fails(default_cfg):
+    with Simulation(default_cfg, seed=0) as sim:
+        gripper = sim.load_gripper(get_gripper(GRIPPER), 1.0)
+        i, j = world_to_cell(sim.grid, 0.0, 0.0)
+        xy = cell_to_world(sim.grid, i, j)
+        sim.add_box([CUBE] * 3, [xy[0], xy[1], CUBE / 2], role="obstacle", name="primitive/obstacle")
+        target = sim.add_box([CUBE] * 3, [0.08, 0.08, CUBE / 2])
+        sim.settle()
+        obs = sim.observe()
+        assert obs.obstacle.max() > 0.5, "the obstacle shows in the obstacle channel"
+        outcome = execute_grasp(sim, gripper, (int(i), int(j), 0, 0), (1.0,), obs.heightmap)
+        assert outcome.lifted_obstacles == ("primitive/obstacle",)
+        assert not outcome.success
+        assert list(sim.objects) == [target], "the lifted obstacle is removed, the target stays"
+
+
+def test_two_targets_in_one_grasp_fail(default_cfg):
+    """Two 2.5 cm cubes side by side along x, pinched together: both rise, the label is a failure."""
+    with Simulation(default_cfg, seed=0) as sim:
+        gripper = sim.load_gripper(get_gripper(GRIPPER), 1.0)
+        i, j = world_to_cell(sim.grid, 0.0, 0.0)
+        x, y = cell_to_world(sim.grid, i, j)
+        edge = 0.025
+        sim.add_box([edge] * 3, [x - edge / 2 - 0.0005, y, edge / 2], name="primitive/left")
+        sim.add_box([edge] * 3, [x + edge / 2 + 0.0005, y, edge / 2], name="primitive/right")
+        sim.settle()
+        obs = sim.observe()
+        outcome = execute_grasp(sim, gripper, (int(i), int(j), 0, 0), (1.0,), obs.heightmap)
+        assert sorted(outcome.lifted_targets) == ["primitive/left", "primitive/right"], outcome
+        assert not outcome.success
+        assert not sim.objects
+
+
+def test_missed_grasp_fails_fast(default_cfg):
+    """A grasp on the empty table lifts nothing and ends its lift early."""
+    with Simulation(default_cfg, seed=0) as sim:
+        gripper = sim.load_gripper(get_gripper(GRIPPER), 1.0)
+        target = sim.add_box([CUBE] * 3, [0.1, 0.1, CUBE / 2])
+        sim.settle()
+        obs = sim.observe()
+        i, j = world_to_cell(sim.grid, -0.1, -0.1)
+        outcome = execute_grasp(sim, gripper, (int(i), int(j), 3, 0), (1.0,), obs.heightmap)
+        assert not outcome.success and outcome.lifted_targets == ()
+        assert list(sim.objects) == [target]
+        full_lift_steps = (default_cfg.sim.lift_to + default_cfg.sim.hold_s * default_cfg.sim.tcp_speed) / (
+            default_cfg.sim.tcp_speed * default_cfg.sim.time_step
+        )
+        assert outcome.steps < full_lift_steps

@@ -1,0 +1,328 @@
+"""Gripper specs, the PyBullet gripper, the procedural families and the real grippers."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+import pybullet_data
+import pytest
+import yaml
+
+from actors.bullet_gripper import BulletGripper, lift_test
+from common.geometry import Transform
+from common.gripper import (
+    GripperModel,
+    GripperSpecError,
+    check_kinematics,
+    get_gripper,
+    joint_positions,
+    list_grippers,
+    load_spec,
+    posed_meshes,
+    registered_spec_paths,
+)
+from common.gripper_procedural import FAMILY_NAMES, generate, sample_params
+
+REAL = ("wsg_50", "panda_hand", "pr2_gripper", "xarm_gripper", "g1_three_finger")
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    """Generated URDFs go to one temporary cache per test session, never the user's cache."""
+    monkeypatch.setenv("ADAGRASP_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+@pytest.fixture
+def client():
+    c = p.connect(p.DIRECT)
+    p.setGravity(0, 0, -9.81, physicsClientId=c)
+    yield c
+    p.disconnect(physicsClientId=c)
+
+
+# ------------------------------------------------------------------ physics sanity
+
+
+def _cube_trials(seeds) -> list[bool]:
+    spec = get_gripper("parallel_jaw-0")
+    out = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        off = tuple(rng.uniform(-0.008, 0.008, 2))
+        out.append(lift_test(spec, 1.0, "box", 0.04, offset=off, yaw=float(rng.uniform(-0.3, 0.3))).success)
+    return out
+
+
+def test_parallel_jaw_lifts_centred_cube_9_of_10():
+    ok = _cube_trials(range(10))
+    assert sum(ok) >= 9, ok
+
+
+# ------------------------------------------------------------------ BulletGripper API
+
+
+def test_reset_and_move_track_the_tcp(client):
+    g = BulletGripper(client, get_gripper("parallel_jaw-1"), scale=1.1)
+    T = Transform.from_yaw(0.7, (0.1, -0.05, 0.3))
+    g.reset(T, 0.5)
+    assert np.allclose(g.tcp_pose().translation, T.translation, atol=1e-6)
+    assert np.allclose(g.tcp_pose().rotation, T.rotation, atol=1e-6)
+    T2 = Transform.from_yaw(-0.4, (0.0, 0.02, 0.2))
+    for _ in range(240):
+        g.move_tcp(T2)
+        g.step()
+        p.stepSimulation(physicsClientId=client)
+    assert np.allclose(g.tcp_pose().translation, T2.translation, atol=2e-3)
+    assert np.allclose(g.tcp_pose().rotation, T2.rotation, atol=1e-2)
+    g.remove()
+
+
+def test_opening_targets_move_fingers_and_couplings_follow(client):
+    spec = get_gripper("parallel_jaw-2")
+    g = BulletGripper(client, spec, 1.0)
+    g.reset(Transform.from_yaw(0.0, (0, 0, 0.5)), 1.0)
+    wide = g.finger_aperture()
+    assert wide == pytest.approx(GripperModel(spec).aperture(1.0), abs=1e-3)
+    g.set_opening_target(0.3)
+    for _ in range(240):
+        g.step()
+        p.stepSimulation(physicsClientId=client)
+    q = g.joint_state()
+    expected = joint_positions(spec, 0.3)
+    for name, v in expected.items():
+        assert q[name] == pytest.approx(v, abs=2e-3), name
+    assert g.finger_aperture() == pytest.approx(GripperModel(spec).aperture(0.3), abs=2e-3)
+    assert g.finger_aperture() < wide
+    assert not g.in_contact()
+    g.remove()
+
+
+def test_declared_target_coupling_keeps_closing_when_driver_is_blocked(client):
+    """Under-actuated distal links follow the driver's target, not its blocked position."""
+    spec = get_gripper("underactuated-0")
+    assert any(c.mode == "target" for c in spec.couplings)
+    g = BulletGripper(client, spec, 1.0)
+    g.reset(Transform.from_yaw(0.0, (0, 0, 0.5)), 1.0)
+    drive = spec.drive_joints[0].name
+    idx = [i for i in range(p.getNumJoints(g.body_id, physicsClientId=client))
+           if p.getJointInfo(g.body_id, i, physicsClientId=client)[1].decode() == drive][0]
+    g.close()
+    p.setJointMotorControl2(g.body_id, idx, p.VELOCITY_CONTROL, targetVelocity=0, force=1e4, physicsClientId=client)
+    for _ in range(240):
+        g.step()
+        p.stepSimulation(physicsClientId=client)
+    q = g.joint_state()
+    closed, opened = joint_positions(spec, 0.0), joint_positions(spec, 1.0)
+    assert q[drive] == pytest.approx(opened[drive], abs=0.02)
+    for c in spec.couplings:
+        if c.mode == "target":
+            assert q[c.joint] == pytest.approx(closed[c.joint], abs=0.05), c.joint
+        elif c.driver == drive:
+            assert q[c.joint] == pytest.approx(opened[c.joint], abs=0.05), c.joint
+    g.remove()
+
+
+def test_in_contact_sees_the_table_and_honours_exclude(client):
+    plane = p.loadURDF(str(Path(pybullet_data.getDataPath()) / "plane.urdf"), physicsClientId=client)
+    g = BulletGripper(client, get_gripper("parallel_jaw-0"), 1.0)
+    g.reset(Transform.from_yaw(0.0, (0, 0, 0.3)), 1.0)
+    p.stepSimulation(physicsClientId=client)
+    assert not g.in_contact()
+    g.reset(Transform.from_yaw(0.0, (0, 0, 0.005)), 1.0)
+    for _ in range(5):
+        g.step()
+        p.stepSimulation(physicsClientId=client)
+    assert g.in_contact()
+    assert not g.in_contact(exclude=(plane,))
+    g.remove()
+    assert p.getNumBodies(physicsClientId=client) == 1
+
+
+# ------------------------------------------------------------------ library
+
+
+@pytest.mark.parametrize("family", FAMILY_NAMES)
+def test_procedural_families_are_deterministic_and_monotonic(family):
+    assert sample_params(family, 5) == sample_params(family, 5)
+    assert sample_params(family, 5) != sample_params(family, 6)
+    a, b = generate(family, 5), generate(family, 5)
+    assert a.spec.urdf == b.spec.urdf and a.spec.name == f"{family}-5"
+    for scale in (0.8, 1.2):
+        ap = check_kinematics(a.spec, scale)
+        assert ap[-1] > ap[0] + 0.005 * scale
+    assert a.spec.description.startswith(family)
+
+
+@pytest.mark.parametrize("name", REAL)
+def test_real_grippers_load_open_close_monotonically(name):
+    spec = get_gripper(name)
+    assert spec.split == "test"
+    assert spec.license
+    for scale in (0.8, 1.0, 1.2):
+        ap = check_kinematics(spec, scale)
+        assert ap[-1] > 0.03 * scale, ap
+    mesh = posed_meshes(spec, 1.0, 1.0)
+    lo, hi = mesh.bounds
+    assert lo[2] < 0.0 < hi[2], "fingers must reach below the TCP and the hand rise above it"
+
+
+def test_mimic_is_read_automatically():
+    spec = get_gripper("panda_hand")
+    (c,) = spec.couplings
+    assert (c.joint, c.driver, c.multiplier, c.from_mimic) == ("panda_finger_joint2", "panda_finger_joint1", 1.0, True)
+    xarm = get_gripper("xarm_gripper")
+    assert len(xarm.couplings) == 5 and all(c.from_mimic for c in xarm.couplings)
+
+
+@pytest.mark.parametrize("name", REAL)
+def test_real_grippers_lift_a_box(name):
+    assert lift_test(get_gripper(name), 1.0, "box", 0.04).success
+
+
+def test_list_grippers_filters():
+    test = list_grippers(split="test")
+    assert {s.name for s in test} == set(REAL)
+    three = list_grippers(family="3-finger")
+    assert three and all(s.family == "3-finger" for s in three)
+    train = list_grippers(split="train")
+    assert len(train) >= 32 and {s.params["generator"] for s in train} == set(FAMILY_NAMES)
+
+
+def test_tcp_estimated_when_spec_leaves_it_out(tmp_path):
+    spec = get_gripper("parallel_jaw-3")
+    data = yaml.safe_load(spec.spec_path.read_text())
+    del data["tcp"]
+    data["source"] = str(spec.source)
+    f = tmp_path / "no_tcp.yaml"
+    f.write_text(yaml.safe_dump(data))
+    est = load_spec(f)
+    assert est.tcp_estimated and not spec.tcp_estimated
+    assert np.allclose(est.approach_axis, spec.approach_axis, atol=0.01)
+    assert abs(abs(est.closing_axis[0]) - 1.0) < 0.01
+    assert np.allclose(est.tcp_position, spec.tcp_position, atol=0.01)
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def _write(tmp_path: Path, data: dict, name: str = "bad.yaml") -> Path:
+    f = tmp_path / name
+    f.write_text(yaml.safe_dump(data))
+    return f
+
+
+def _base(tmp_path: Path) -> dict:
+    spec = get_gripper("parallel_jaw-0")
+    data = yaml.safe_load(spec.spec_path.read_text())
+    data["source"] = str(spec.source)
+    return data
+
+
+def _one_line(e: pytest.ExceptionInfo, *parts: str) -> None:
+    msg = str(e.value)
+    assert "\n" not in msg
+    for part in parts:
+        assert part in msg, msg
+
+
+def test_unknown_joint_names_file_and_field(tmp_path):
+    data = _base(tmp_path)
+    data["drive_joints"][0]["name"] = "no_such_joint"
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "drive_joints[0].name", "no_such_joint")
+
+
+def test_opening_that_does_not_move_fingers(tmp_path):
+    data = _base(tmp_path)
+    data["drive_joints"][0]["open"] = data["drive_joints"][0]["closed"] + 0.001
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        check_kinematics(load_spec(f))
+    _one_line(e, str(f), "drive_joints[0].open", "does not move the fingers")
+    data["drive_joints"][0]["open"] = data["drive_joints"][0]["closed"]
+    f = _write(tmp_path, data, "same.yaml")
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "drive_joints[0].open")
+
+
+def test_broken_urdf(tmp_path):
+    urdf = tmp_path / "broken.urdf"
+    urdf.write_text("<robot name='x'><link name='a'></robot>")
+    data = _base(tmp_path)
+    data["source"] = str(urdf)
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "source", "not valid XML")
+
+
+def test_missing_mesh_and_missing_source(tmp_path):
+    urdf = tmp_path / "nomesh.urdf"
+    urdf.write_text(
+        "<robot name='x'><link name='palm'><collision><geometry><mesh filename='package://nowhere/m.stl'/>"
+        "</geometry></collision></link><link name='f'/><joint name='j' type='prismatic'><parent link='palm'/>"
+        "<child link='f'/><axis xyz='1 0 0'/><limit lower='0' upper='0.05' effort='1' velocity='1'/></joint></robot>"
+    )
+    data = _base(tmp_path)
+    data.update(source=str(urdf), drive_joints=[{"name": "j", "open": 0.05, "closed": 0.0}], couplings=[])
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "source", "m.stl")
+    data["source"] = str(tmp_path / "missing.urdf")
+    f = _write(tmp_path, data, "missing.yaml")
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "source", "not found")
+
+
+@pytest.mark.parametrize(
+    "key,value,field",
+    [
+        ("family", "4-finger", "family"),
+        ("split", "val", "split"),
+        ("cut_link", "no_link", "cut_link"),
+        ("friction", -1, "friction"),
+        ("colour", "red", "colour"),
+        ("tcp", {"position": [0, 0], "approach": [0, 0, 1]}, "tcp.position"),
+    ],
+)
+def test_bad_fields_name_file_and_field(tmp_path, key, value, field):
+    data = _base(tmp_path)
+    data[key] = value
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), field)
+
+
+def test_unknown_gripper_name():
+    with pytest.raises(GripperSpecError) as e:
+        get_gripper("no_such_gripper")
+    _one_line(e, "no_such_gripper", "unknown gripper")
+
+
+def test_registry_files_are_named_after_their_gripper():
+    for name, path in registered_spec_paths().items():
+        assert yaml.safe_load(path.read_text())["name"] == name
+
+
+def test_cache_goes_to_env_dir():
+    spec = get_gripper("revolute-1")
+    assert str(spec.urdf).startswith(os.environ["ADAGRASP_CACHE"])
+    assert not str(spec.urdf).startswith(str(Path(__file__).parents[1] / "assets"))
+
+
+def test_scale_scales_geometry():
+    spec = get_gripper("three_finger-2")
+    a = GripperModel(spec, 1.0).mesh(0.7).extents
+    b = GripperModel(spec, 1.2).mesh(0.7).extents
+    assert np.allclose(b, 1.2 * a, rtol=1e-6)
+    assert math.isclose(GripperModel(spec, 1.2).aperture(1.0), 1.2 * GripperModel(spec, 1.0).aperture(1.0), rel_tol=1e-2)

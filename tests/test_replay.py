@@ -1,0 +1,469 @@
+"""Replay shard and client: round trip, FIFO, gripper table, sampling, scores, bad input, corruption."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import zarr
+
+from common.config import load_config
+from replay.client import ReplayClient, open_local_shards
+from replay.sampler import BufferPool, draw_balanced, rank_probabilities
+from replay.schema import (
+    HEIGHTMAP_STEP,
+    ReplayCorruptError,
+    ReplayEmptyError,
+    ReplayError,
+    ReplayInputError,
+    ReplaySchemaError,
+    encode_trial,
+    max_errors,
+)
+from replay.shard import ReplayCorruptWarning, ReplayShard, find_shards
+from replay.synthetic import synthetic_gripper_encoding, synthetic_trial
+
+
+def tiny_cfg(capacity: int = 16, shards: int = 1, chunk: int = 4, levels: int = 127):
+    """48 x 48 x 16 scene grid, 16 x 16 x 8 gripper grid: fast, same code paths as paper scale."""
+    return load_config(
+        "default",
+        overrides=[
+            "scene_grid.voxel_size=0.008",
+            "gripper_grid.shape=[16, 16, 8]",
+            f"replay.capacity={capacity}",
+            f"replay.shards={shards}",
+            f"replay.chunk_trials={chunk}",
+            f"replay.tsdf_levels={levels}",
+        ],
+    )
+
+
+def make_trial(cfg, i: int, rng=None, **kw):
+    rng = np.random.default_rng(i) if rng is None else rng
+    kw.setdefault("episode_id", i)
+    return synthetic_trial(rng, cfg.scene_grid, cfg.gripper_grid, kw.pop("n_objects", 1), kw.pop("n_obstacles", 0), **kw)
+
+
+def tree_digest(path: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(path)): hashlib.sha1(p.read_bytes()).hexdigest() for p in sorted(path.rglob("*")) if p.is_file()
+    }
+
+
+def one_line(e: pytest.ExceptionInfo) -> str:
+    msg = str(e.value)
+    assert "\n" not in msg, msg
+    return msg
+
+
+# --------------------------------------------------------------------------------------
+# Storage
+# --------------------------------------------------------------------------------------
+
+
+def test_round_trip_exact_meta_and_bounded_volume_error(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    trials = [make_trial(cfg, i, n_objects=3, n_obstacles=2) for i in range(5)]
+    for t in trials:
+        t.meta = dataclasses.replace(t.meta, wall_time=1.7e9 + 1 / 3, object_ids=("ycb/ä", "set/x y"))
+        shard.insert(t)
+    err = max_errors(cfg.replay.tsdf_levels)
+    for n, t in enumerate(trials):
+        got = shard.get_trial(n)
+        assert got.meta == t.meta  # every field exactly, floats bit for bit
+        assert got.action == t.action and got.label == t.label and got.score == t.score
+        assert got.gripper_key == t.gripper_key
+        assert np.abs(got.observation.tsdf - t.observation.tsdf).max() <= err["tsdf"] + 1e-7
+        assert np.abs(got.observation.obstacle - t.observation.obstacle).max() <= err["obstacle"] + 1e-7
+        assert np.abs(got.observation.heightmap - t.observation.heightmap).max() <= err["heightmap_m"] + 1e-7
+        assert np.array_equal(got.observation.valid, t.observation.valid)
+        s = t.action[3]
+        assert np.abs(got.gripper_encoding - t.gripper_encoding[s]).max() <= err["gripper_tsdf"] + 1e-7
+        # saturated values (free space) come back exactly
+        free = t.observation.tsdf == 1.0
+        assert np.all(got.observation.tsdf[free] == 1.0)
+    assert err["tsdf"] == pytest.approx(1 / 254) and err["heightmap_m"] == pytest.approx(HEIGHTMAP_STEP / 2)
+
+
+def test_group_opens_with_plain_zarr_and_documents_itself(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    t = make_trial(cfg, 0)
+    shard.insert(t)
+    shard.close()
+    g = zarr.open_group(str(tmp_path / "s"), mode="r")
+    attrs = g.attrs["adagrasp_replay"]
+    assert attrs["schema_version"] == 1 and attrs["kind"] == "shard"
+    assert set(attrs["arrays"]) >= {"scene", "heightmap", "valid", "action", "label", "score", "meta", "gripper_table", "commit"}
+    first, end = g["commit"][:]
+    assert (first, end) == (0, 1)
+    levels = attrs["tsdf_levels"]
+    tsdf = g["scene"][0, 0].astype(np.float32) / levels
+    assert np.abs(tsdf - t.observation.tsdf).max() <= 0.5 / levels + 1e-7
+    meta = json.loads(str(g["meta"][0]))
+    assert meta["episode_id"] == t.meta.episode_id and tuple(meta["openings"]) == t.meta.openings
+    assert g["gripper_table_key"][g["gripper_row"][0]] == t.gripper_key
+    assert "units" in g["scene"].attrs and "description" in g["heightmap"].attrs
+    # time-major arrays are chunked along time only
+    for name in ("scene", "heightmap", "valid", "action", "label"):
+        a = g[name]
+        assert tuple(a.chunks[1:]) == tuple(a.shape[1:]), name
+
+
+def test_fifo_order_single_shard(tmp_path):
+    cfg = tiny_cfg(capacity=6, chunk=4)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    for i in range(15):
+        assert shard.insert(make_trial(cfg, i)) == i
+        assert len(shard) == min(i + 1, 6)
+    assert shard.visible_ids().tolist() == list(range(9, 15))
+    assert [shard.get_trial(n).meta.episode_id for n in range(9, 15)] == list(range(9, 15))
+    with pytest.raises(ReplayError) as e:
+        shard.get_trial(8)
+    assert "not visible" in one_line(e)
+    shard.close()
+    again = ReplayShard(tmp_path / "s", cfg)
+    assert again.visible_ids().tolist() == list(range(9, 15))
+    assert again.insert(make_trial(cfg, 15)) == 15
+    assert again.visible_ids().tolist() == list(range(10, 16))
+
+
+def test_fifo_across_shards_keeps_the_newest(tmp_path):
+    cfg = tiny_cfg(capacity=8, shards=2)
+    client = ReplayClient(open_local_shards(tmp_path / "r", cfg), cfg, seed=0)
+    for i in range(21):
+        client.insert(make_trial(cfg, i))
+    client.flush()
+    assert client.size() == 8
+    readers = [ReplayShard(p, read_only=True) for p in find_shards(tmp_path / "r")]
+    episodes = sorted(r.get_trial(t).meta.episode_id for r in readers for t in r.visible_ids())
+    assert episodes == list(range(13, 21))
+
+
+def test_gripper_table_stored_once_and_refcounted(tmp_path):
+    cfg = tiny_cfg(capacity=6, chunk=4)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    openings = (0.5, 0.75, 1.0)
+    enc = synthetic_gripper_encoding(cfg.gripper_grid, openings)
+    rng = np.random.default_rng(0)
+    # one episode (one key), 4 attempts with the same opening index: one table row
+    for step in range(4):
+        t = make_trial(cfg, step, rng, scale=1.0, openings=openings, encoding=enc, episode_id=0, step=step)
+        t.action = t.action[:3] + (1,)
+        shard.insert(t)
+    assert shard.stats()["table_rows_used"] == 1
+    rows = shard.column("gripper_row", shard.visible_ids())
+    assert len(set(rows.tolist())) == 1
+    # new keys evict the old episode trial by trial; the shared row survives until its last user goes
+    for n in range(4, 9):
+        shard.insert(make_trial(cfg, n, rng))
+        users_left = sum(1 for t in shard.visible_ids() if t < 4)
+        assert (shard.stats()["table_rows_used"]) == len(shard.visible_ids()) - users_left + (1 if users_left else 0)
+        for t in shard.visible_ids():
+            got = shard.get_trial(int(t))
+            assert got.gripper_encoding.shape == (2, 16, 16, 8)
+    row_of_old = int(rows[0])
+    assert shard._refcount[row_of_old] == 0 or any(t < 4 for t in shard.visible_ids())
+    shard.close()
+    again = ReplayShard(tmp_path / "s", cfg)
+    assert again.stats()["table_rows_used"] == len(again.visible_ids())
+    for t in again.visible_ids():
+        assert again.get_trial(int(t)).gripper_key == again._table["gripper_table_key"][again.column("gripper_row", [t])[0]]
+
+
+def test_duplicate_token_is_stored_once(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    rec = encode_trial(make_trial(cfg, 0), cfg.replay.tsdf_levels, token=(42, 7))
+    assert shard.insert_encoded(rec) == 0
+    assert shard.insert_encoded(rec) == 0
+    assert len(shard) == 1 and shard.stats()["duplicates_skipped"] == 1
+    shard.close()
+    again = ReplayShard(tmp_path / "s", cfg)
+    assert again.insert_encoded(rec) == 0 and len(again) == 1
+
+
+def test_second_writer_is_refused(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    with pytest.raises(ReplayError) as e:
+        ReplayShard(tmp_path / "s", cfg)
+    assert "another process is writing" in one_line(e)
+    ReplayShard(tmp_path / "s", read_only=True)  # readers are fine
+    shard.close()
+    ReplayShard(tmp_path / "s", cfg).close()
+
+
+# --------------------------------------------------------------------------------------
+# Bad input, bad schema, corruption
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "field, mutate",
+    [
+        ("observation.tsdf", lambda t: t.observation.tsdf.__setitem__((0, 0, 0), np.nan)),
+        ("observation.tsdf", lambda t: t.observation.tsdf.__setitem__((0, 0, 0), 3.0)),
+        ("observation.obstacle", lambda t: t.observation.obstacle.__setitem__((0, 0, 0), -0.5)),
+        ("score", lambda t: setattr(t, "score", 1.5)),
+        ("meta.seed", lambda t: setattr(t, "meta", dataclasses.replace(t.meta, seed=1.5))),
+        ("record does not match", lambda t: setattr(t.observation, "tsdf", t.observation.tsdf[:, :, :-1])),
+    ],
+)
+def test_bad_trial_is_refused_and_writes_nothing(tmp_path, field, mutate):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    shard.insert(make_trial(cfg, 0))
+    before = tree_digest(tmp_path / "s")
+    bad = make_trial(cfg, 1)
+    mutate(bad)
+    with pytest.raises(ReplayInputError) as e:
+        shard.insert(bad)
+    msg = one_line(e)
+    assert field in msg and "episode 1" in msg
+    assert tree_digest(tmp_path / "s") == before and len(shard) == 1
+
+
+def test_shard_shape_mismatch_is_refused(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    other = tiny_cfg()
+    other.scene_grid.voxel_size = 0.004
+    t = synthetic_trial(np.random.default_rng(0), other.scene_grid, other.gripper_grid, 1)
+    with pytest.raises(ReplayInputError) as e:
+        shard.insert(t)
+    assert "observation.tsdf" in one_line(e)
+    shard.close()
+    with pytest.raises(ReplaySchemaError) as e:
+        ReplayShard(tmp_path / "s", other)
+    assert "scene_shape" in one_line(e) and str(tmp_path / "s") in str(e.value)
+
+
+def test_bad_schema_version_names_path_and_touches_nothing(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    shard.insert(make_trial(cfg, 0))
+    shard.close()
+    meta_file = tmp_path / "s" / "zarr.json"
+    doc = json.loads(meta_file.read_text())
+    doc["attributes"]["adagrasp_replay"]["schema_version"] = 99
+    meta_file.write_text(json.dumps(doc))
+    before = tree_digest(tmp_path / "s")
+    for kwargs in ({"cfg": cfg}, {"read_only": True}):
+        with pytest.raises(ReplaySchemaError) as e:
+            ReplayShard(tmp_path / "s", **kwargs)
+        msg = one_line(e)
+        assert str(meta_file.parent) in msg and "schema_version" in msg and "99" in msg
+    with pytest.raises(ReplaySchemaError):
+        find_shards(tmp_path / "s")
+    assert tree_digest(tmp_path / "s") == before
+
+
+def test_wrong_array_dtype_is_named(tmp_path):
+    cfg = tiny_cfg()
+    ReplayShard(tmp_path / "s", cfg).close()
+    meta_file = tmp_path / "s" / "label" / "zarr.json"
+    doc = json.loads(meta_file.read_text())
+    doc["data_type"] = "int16"
+    doc["fill_value"] = -1
+    meta_file.write_text(json.dumps(doc))
+    with pytest.raises(ReplaySchemaError) as e:
+        ReplayShard(tmp_path / "s", read_only=True)
+    msg = one_line(e)
+    assert f"{tmp_path / 's'}/label" in msg and "data_type" in msg
+
+
+def _chunk_file(path: Path, array: str, entry: int) -> Path:
+    """File of the chunk holding entry ``entry`` (along time) of ``array``."""
+    a = zarr.open_array(str(path / array), mode="r")
+    return path / array / a.metadata.encode_chunk_key((entry // a.chunks[0],) + (0,) * (a.ndim - 1))
+
+
+def test_corrupt_volume_chunk_only_loses_that_trial(tmp_path):
+    cfg = tiny_cfg(capacity=8, chunk=4)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    for i in range(6):
+        shard.insert(make_trial(cfg, i, label=bool(i % 2)))
+    f = _chunk_file(tmp_path / "s", "scene", 3)
+    raw = bytearray(f.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    f.write_bytes(bytes(raw))
+    before = tree_digest(tmp_path / "s")
+    # sampling skips it, counts it and warns once; the client redraws
+    client = ReplayClient([shard], cfg, seed=0)
+    with pytest.warns(ReplayCorruptWarning, match="trial 3 unreadable"):
+        batches = [client.sample(4) for _ in range(30)]
+    drawn = torch.cat([b.index[:, 1] for b in batches]).tolist()
+    assert 3 not in drawn and set(drawn) == {0, 1, 2, 4, 5}
+    assert shard.stats()["corrupt"] == 1 and shard.stats()["corrupt_skipped"] >= 1 and 3 not in shard.visible_ids()
+    assert client.counters["redraws"] >= 1
+    with pytest.raises(ReplayCorruptError) as e:
+        shard.get_trial(3)
+    msg = one_line(e)
+    assert f"{tmp_path / 's'}/scene" in msg and "trial 3" in msg and "checksum" in msg
+    for n in (0, 1, 2, 4, 5):
+        assert shard.get_trial(n).meta.episode_id == n
+    assert tree_digest(tmp_path / "s") == before  # nothing rewritten by reading
+    # a missing chunk file is reported the same way
+    _chunk_file(tmp_path / "s", "scene", 4).unlink()
+    reader = ReplayShard(tmp_path / "s", read_only=True)
+    with pytest.raises(ReplayCorruptError) as e:
+        reader.get_trial(4)
+    assert "missing" in one_line(e)
+
+
+def test_corrupt_column_chunk_loses_only_its_trials(tmp_path):
+    cfg = tiny_cfg(capacity=12, chunk=4)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    for i in range(12):
+        shard.insert(make_trial(cfg, i))
+    shard.close()
+    f = _chunk_file(tmp_path / "s", "label", 4)  # chunk of slots 4..7
+    f.write_bytes(f.read_bytes()[:-3] + b"xyz")
+    with pytest.warns(ReplayCorruptWarning, match=r"/label: chunk of slots 4\.\.7 unreadable"):
+        reader = ReplayShard(tmp_path / "s", read_only=True)
+    assert reader.visible_ids().tolist() == [0, 1, 2, 3, 8, 9, 10, 11]
+    assert reader.stats()["lost"] == 4
+    with pytest.warns(ReplayCorruptWarning):
+        writer = ReplayShard(tmp_path / "s", cfg)
+    writer.insert(make_trial(cfg, 12))  # evicts trial 0; the rest stays as it was
+    assert writer.visible_ids().tolist() == [1, 2, 3, 8, 9, 10, 11, 12]
+
+
+# --------------------------------------------------------------------------------------
+# Sampling
+# --------------------------------------------------------------------------------------
+
+
+def test_rank_probabilities_follow_the_paper():
+    surprise = np.array([0.9, 0.1, 0.5, 0.1])
+    p = rank_probabilities(surprise)
+    # ascending stable ranks: 0.1 (idx 1) -> 1, 0.1 (idx 3) -> 2, 0.5 -> 3, 0.9 -> 4
+    assert np.allclose(p, np.array([4, 1, 3, 2]) / 10)
+
+
+def test_balance_one_to_one_over_2000_draws(tmp_path):
+    cfg = tiny_cfg(capacity=40, shards=2)
+    client = ReplayClient(open_local_shards(tmp_path / "r", cfg), cfg, seed=3)
+    for i in range(40):
+        client.insert(make_trial(cfg, i, label=i % 5 == 0))  # 20% successes
+    client.flush()
+    labels = torch.cat([client.sample(8).label for _ in range(250)])
+    assert labels.numel() == 2000 and labels.sum().item() == 1000
+    rng = np.random.default_rng(0)
+    lab = rng.random(500) < 0.1
+    for _ in range(50):
+        pos, ok = draw_balanced(lab, rng.random(500), 8, rng)
+        assert ok and lab[pos].sum() == 4 and len(set(pos.tolist())) == 8
+
+
+def test_surprise_weighting_prefers_surprising_trials():
+    rng = np.random.default_rng(0)
+    n = 20
+    labels = np.zeros(2 * n, bool)
+    labels[:n] = True
+    scores = np.concatenate([np.linspace(0, 1, n), np.linspace(0, 1, n)])  # success surprise 1 - s, failure s
+    counts = np.zeros(2 * n)
+    for _ in range(3000):
+        pos, _ = draw_balanced(labels, scores, 8, rng)
+        np.add.at(counts, pos, 1)
+    succ, fail = counts[:n], counts[n:]
+    # successes: the lowest scores are the most surprising; failures: the highest scores
+    assert succ[:5].sum() > 2.5 * succ[-5:].sum()
+    assert fail[-5:].sum() > 2.5 * fail[:5].sum()
+    assert np.corrcoef(np.arange(n), fail)[0, 1] > 0.9 and np.corrcoef(np.arange(n), succ)[0, 1] < -0.9
+
+
+def test_sample_batch_tensors_and_score_write_back(tmp_path):
+    cfg = tiny_cfg(capacity=20, shards=2)
+    shards = open_local_shards(tmp_path / "r", cfg)
+    client = ReplayClient(shards, cfg, seed=1)
+    trials = [make_trial(cfg, i, label=bool(i % 2), n_obstacles=1) for i in range(20)]
+    for t in trials:
+        client.insert(t)
+    batch = client.sample(8)
+    x, y, z = cfg.scene_grid.shape
+    assert batch.scene.shape == (8, 2, x, y, z) and batch.scene.dtype == torch.float32
+    assert batch.gripper.shape == (8, 2, 16, 16, 8) and batch.gripper.dtype == torch.float32
+    assert batch.action.dtype == torch.int64 and batch.action.shape == (8, 4)
+    assert batch.label.dtype == torch.float32 and batch.label.sum() == 4 and batch.balanced
+    by_episode = {t.meta.episode_id: t for t in trials}
+    for b in range(8):
+        k, tid = batch.index[b].tolist()
+        t = by_episode[shards[k].get_trial(tid).meta.episode_id]
+        assert batch.action[b].tolist() == list(t.action) and batch.label[b].item() == float(t.label)
+        assert (batch.scene[b, 0] - torch.from_numpy(t.observation.tsdf)).abs().max() <= 1 / 254 + 1e-6
+        assert (batch.scene[b, 1] - torch.from_numpy(t.observation.obstacle)).abs().max() <= 1 / 254 + 1e-6
+        enc = torch.from_numpy(t.gripper_encoding[t.action[3]])
+        assert (batch.gripper[b] - enc).abs().max() <= 1 / 254 + 1e-6
+    new = torch.linspace(0.05, 0.95, 8)
+    client.update_scores(batch.index, new)
+    client.flush()
+    for b in range(8):
+        k, tid = batch.index[b].tolist()
+        assert shards[k].get_trial(tid).score == pytest.approx(float(new[b]))
+    for s in shards:
+        s.close()
+    again = open_local_shards(tmp_path / "r", cfg)
+    k, tid = batch.index[0].tolist()
+    assert again[k].get_trial(tid).score == pytest.approx(float(new[0]))
+    with pytest.raises(ReplayInputError) as e:
+        again[0].update_scores([int(again[0].visible_ids()[0])], [float("nan")])
+    assert "update_scores.scores" in one_line(e)
+
+
+def test_one_empty_class_fills_the_batch_and_is_counted(tmp_path):
+    cfg = tiny_cfg(capacity=10)
+    client = ReplayClient(open_local_shards(tmp_path / "r", cfg), cfg, seed=0)
+    with pytest.raises(ReplayEmptyError):
+        client.sample(8)
+    for i in range(5):
+        client.insert(make_trial(cfg, i, label=False))
+    batch = client.sample(8)
+    assert not batch.balanced and batch.label.sum() == 0 and batch.label.numel() == 8
+    assert client.counters["unbalanced_batches"] == 1
+
+
+def test_buffer_pool_never_hands_out_a_buffer_in_use():
+    pool = BufferPool(max_buffers=2)
+    a = torch.from_numpy(pool.take((3, 4), np.float32))
+    view = a[1]
+    del a
+    b = pool.take((3, 4), np.float32)
+    assert b.ctypes.data != view.data_ptr() - 16  # the view keeps the first buffer alive
+    del view
+    c = pool.take((3, 4), np.float32)
+    assert c is pool._buffers[0] or c is pool._buffers[1]
+
+
+def test_client_refuses_mixed_or_mismatched_shards(tmp_path):
+    cfg = tiny_cfg()
+    s1 = ReplayShard(tmp_path / "a", cfg)
+    other = tiny_cfg(levels=63)
+    s2 = ReplayShard(tmp_path / "b", other)
+    with pytest.raises(ReplaySchemaError) as e:
+        ReplayClient([s1, s2], cfg)
+    assert "tsdf_levels" in one_line(e)
+    with pytest.raises(ReplayError):
+        ReplayClient([s1, object()], cfg)
+
+
+def test_env_has_no_partial_files_after_reopen(tmp_path):
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    shard.insert(make_trial(cfg, 0))
+    shard.close()
+    stray = tmp_path / "s" / "scene" / "c" / "1.0123abcd.partial"
+    stray.parent.mkdir(parents=True, exist_ok=True)
+    stray.write_bytes(b"half")
+    ReplayShard(tmp_path / "s", cfg).close()
+    assert not stray.exists()
+    assert os.listdir(tmp_path / "s")
