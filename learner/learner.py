@@ -101,8 +101,8 @@ class Learner:
             with torch.no_grad():
                 b = torch.arange(logits.shape[0], device=logits.device)
                 prob = torch.softmax(logits[b, :, action[:, 0], action[:, 1]], dim=1)[:, 1].cpu()
-            self.replay.update_scores(batch.indices, prob.numpy())
-            losses.append(float(loss))
+            self.replay.update_scores(batch.index, prob.numpy())
+            losses.append(float(loss.detach()))
             lab = batch.label.bool()
             if lab.any():
                 pos.append(float(prob[lab].mean()))

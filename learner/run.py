@@ -20,7 +20,6 @@ import json
 import signal
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from common.config import Config, ConfigError, load_config, save_config
@@ -41,18 +40,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-@dataclass
-class Limits:
-    """When a run stops."""
-
-    max_trials: int
-    """Trials in the replay (inserted in this run and before it) at which to stop; 0 = none."""
-    max_minutes: float
-    """Wall minutes of this invocation; 0 = none."""
-
-
-def resolve(args: argparse.Namespace) -> tuple[Config, Path, Limits]:
-    """Config (from the run dir when resuming), run directory and limits."""
+def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
+    """Config (from the run dir when resuming, limits in cfg.run) and run directory."""
     if args.resume:
         if not args.run_dir:
             raise ConfigError("--resume: needs --run-dir of the run to continue")
@@ -73,13 +62,13 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path, Limits]:
         cfg.run.max_minutes = args.max_minutes
     run_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, run_dir / "config.yaml")
-    return cfg, run_dir, Limits(cfg.run.max_trials, cfg.run.max_minutes)
+    return cfg, run_dir
 
 
 def cli(argv: list[str]) -> int:
     args = parse_args(argv)
     try:
-        cfg, run_dir, limits = resolve(args)
+        cfg, run_dir = resolve(args)
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -97,11 +86,10 @@ def cli(argv: list[str]) -> int:
     previous = signal.signal(signal.SIGINT, on_sigint)
     try:
         if args.actors == 0:
-            summary = run_local(cfg, run_dir, limits, stop, quiet=args.quiet, resume=args.resume)
+            summary = run_local(cfg, run_dir, stop, quiet=args.quiet)
         else:
             summary = run_distributed(
-                cfg, run_dir, limits, stop, n_actors=args.actors, address=args.address,
-                quiet=args.quiet, resume=args.resume,
+                cfg, run_dir, stop, n_actors=args.actors, address=args.address, quiet=args.quiet
             )
     finally:
         signal.signal(signal.SIGINT, previous)

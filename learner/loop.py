@@ -1,0 +1,377 @@
+"""Where the parts live: one process (``run_local``) or Ray actors (``run_distributed``).
+
+The parts are built once by the same constructors either way: replay shards
+(``replay.client``), a :class:`learner.learner.Learner` wrapped by :class:`LearnerProcess`, and
+:class:`actors.grasp_actor.GraspActor`. The driver loop only moves weights references, epsilon
+and counters between them:
+
+    actors:  run_episodes(n, epsilon, version, [weights_ref], first_episode) -> reports
+    learner: train(steps) -> stats (+ a new weights version every P steps, one ray.put each)
+    driver:  steps allowed by the samples-per-insert limiter; progress; checkpoints; limits
+
+Weights reach an actor with its next chunk of episodes (a reference; the actor fetches the
+object only when the version is newer), so no actor ever waits for the learner.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections import deque
+from pathlib import Path
+
+import torch
+
+from actors.grasp_actor import EpisodeReport, GraspActor
+from common.config import Config, to_dict
+from learner.learner import Learner, epsilon_at, resolve_device
+from replay.client import ReplayClient, open_local_shards, start_remote_shards
+
+CHECKPOINT_NAME = "latest.pt"
+"""File name of the newest checkpoint inside RUN/checkpoints/."""
+LEARNER_CHUNK_STEPS = 16
+"""Most learner steps per train() call, so the driver stays responsive."""
+
+
+def checkpoint_path(run_dir: Path) -> Path:
+    """RUN/checkpoints/latest.pt."""
+    return Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
+
+
+def total_inserted(replay: ReplayClient) -> int:
+    """Trials ever committed to the replay (all shards, evicted ones included)."""
+    return int(sum(s["end"] for s in replay.stats()["shards"]))
+
+
+class LearnerProcess:
+    """The learner with its replay client, checkpointing and weight publishing; local or a Ray actor."""
+
+    def __init__(self, cfg: Config, shards: list, run_dir: str, seed: int) -> None:
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        device = resolve_device(cfg.learner.device)
+        if device.type == "cpu":
+            torch.set_num_threads(max(1, min(os.cpu_count() or 1, 4)))
+        self.replay = ReplayClient(shards, cfg, seed=seed)
+        self.learner = Learner(cfg, self.replay, device=device, seed=seed)
+        ckpt = checkpoint_path(self.run_dir)
+        self.resumed_from = None
+        if ckpt.is_file():
+            state = torch.load(ckpt, map_location="cpu", weights_only=False)
+            self.learner.load_state_dict(state["learner"])
+            self.resumed_from = int(state["learner"]["steps"])
+
+    def inserted(self) -> int:
+        """Trials ever committed to the replay."""
+        return total_inserted(self.replay)
+
+    def train(self, max_steps: int, publish: bool = True) -> dict:
+        """Up to ``max_steps`` steps as the rate limiter allows; a new weights version when due.
+
+        Returns a stats dict; ``weights`` holds ``(version, [ref or state])`` when one was published.
+        """
+        inserted = self.inserted()
+        steps = min(max_steps, self.learner.limiter.allowed_steps(inserted, self.learner.stats.samples))
+        if steps > 0:
+            self.learner.train(steps)
+        s = self.learner.stats
+        out = {
+            "steps": s.steps, "samples": s.samples, "version": s.version, "loss": s.loss,
+            "pos_score": s.pos_score, "neg_score": s.neg_score, "inserted": inserted, "ran": steps,
+            "weights": None,
+        }
+        if publish and (s.version == 0 or self.learner.steps_since_publish >= self.cfg.learner.publish_every):
+            out["weights"] = self.publish()
+            out["version"] = self.learner.stats.version
+        return out
+
+    def publish(self) -> tuple[int, list]:
+        """A new weights version: (version, [object ref]) under Ray, (version, [state]) in-process."""
+        version, state = self.learner.publish()
+        try:
+            import ray
+
+            if ray.is_initialized() and ray.get_runtime_context().get_actor_id() is not None:
+                return version, [ray.put(state)]
+        except ImportError:
+            pass
+        return version, [state]
+
+    def checkpoint(self, epsilon: float, inserted: int) -> str:
+        """Write RUN/checkpoints/latest.pt atomically; returns its path."""
+        path = checkpoint_path(self.run_dir)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        learner_state = self.learner.state_dict()
+        state = {
+            "format": "adagrasp-scale-checkpoint/1",
+            "model": learner_state["model"],
+            "variant": self.cfg.model.variant,
+            "config": to_dict(self.cfg),
+            "step": learner_state["steps"],
+            "version": learner_state["version"],
+            "epsilon": float(epsilon),
+            "replay": {"inserted": int(inserted), "shards": self.cfg.replay.shards},
+            "learner": learner_state,
+        }
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+        return str(path)
+
+    def history(self) -> list:
+        """(step, loss) pairs since the run started."""
+        return list(self.learner.stats.history)
+
+
+class Progress:
+    """Progress line, progress.jsonl and TensorBoard scalars, shared by both drivers."""
+
+    def __init__(self, cfg: Config, run_dir: Path, quiet: bool, dashboard: str | None = None) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.cfg = cfg
+        self.quiet = quiet
+        self.t0 = time.time()
+        self.last_print = 0.0
+        self.trials_at_start: int | None = None
+        self.samples_at_start: int | None = None
+        self.recent: deque = deque(maxlen=200)
+        self.by_group: dict[str, deque] = {}
+        self.log = open(Path(run_dir) / "progress.jsonl", "a")
+        self.tb = SummaryWriter(str(Path(run_dir) / "tb"))
+        self.dashboard = dashboard
+        self.episodes = 0
+
+    def add_reports(self, reports: list[EpisodeReport]) -> None:
+        for r in reports:
+            self.episodes += 1
+            outcomes = [1] * r.successes + [0] * (r.trials - r.successes)
+            self.recent.extend((o, r.policy_version) for o in outcomes)
+            for group in (f"family/{r.family}", f"scene/{r.scene}"):
+                self.by_group.setdefault(group, deque(maxlen=200)).extend(outcomes)
+
+    def tick(self, inserted: int, stats: dict, epsilon: float, force: bool = False) -> dict:
+        now = time.time()
+        if self.trials_at_start is None:
+            self.trials_at_start, self.samples_at_start = inserted, stats.get("samples", 0)
+        elapsed = max(1e-6, now - self.t0)
+        trials_s = (inserted - self.trials_at_start) / elapsed
+        samples_s = (stats.get("samples", 0) - (self.samples_at_start or 0)) / elapsed
+        success = sum(o for o, _ in self.recent) / len(self.recent) if self.recent else float("nan")
+        lag = stats.get("version", 0) - (sum(v for _, v in self.recent) / len(self.recent)) if self.recent else float("nan")
+        line = {
+            "time": round(now - self.t0, 1), "trials": inserted, "episodes": self.episodes,
+            "success_rate": success, "learner_steps": stats.get("steps", 0), "loss": stats.get("loss", float("nan")),
+            "version": stats.get("version", 0), "trials_per_s": trials_s, "samples_per_s": samples_s,
+            "epsilon": epsilon, "weights_lag": lag,
+        }
+        if force or now - self.last_print >= 5.0:
+            self.last_print = now
+            self.log.write(json.dumps(line) + "\n")
+            self.log.flush()
+            step = int(stats.get("steps", 0))
+            for key in ("loss", "pos_score", "neg_score"):
+                if not math.isnan(stats.get(key, float("nan"))):
+                    self.tb.add_scalar(f"learner/{key}", stats[key], step)
+            self.tb.add_scalar("collect/trials_per_s", trials_s, inserted)
+            self.tb.add_scalar("learner/samples_per_s", samples_s, step)
+            self.tb.add_scalar("collect/epsilon", epsilon, inserted)
+            if not math.isnan(lag):
+                self.tb.add_scalar("collect/weights_version_lag", lag, inserted)
+            for group, outcomes in self.by_group.items():
+                if outcomes:
+                    self.tb.add_scalar(f"success/{group}", sum(outcomes) / len(outcomes), inserted)
+            if not self.quiet:
+                dash = f" | dashboard {self.dashboard}" if self.dashboard else ""
+                print(
+                    f"[{line['time']:7.1f}s] trials {inserted} | success {success:.2f} | steps {line['learner_steps']}"
+                    f" | loss {line['loss']:.4f} | weights v{line['version']} | {trials_s:.2f} trials/s"
+                    f" | {samples_s:.1f} samples/s | eps {epsilon:.2f}{dash}",
+                    flush=True,
+                )
+        return line
+
+    def close(self) -> None:
+        self.log.close()
+        self.tb.close()
+
+
+def _done(cfg: Config, inserted: int, t0: float, stop: dict) -> bool:
+    if stop["flag"]:
+        return True
+    if cfg.run.max_trials and inserted >= cfg.run.max_trials:
+        return True
+    return bool(cfg.run.max_minutes and time.time() - t0 >= cfg.run.max_minutes * 60)
+
+
+def _summary(run_dir: Path, inserted: int, stats: dict, progress: Progress, extra: dict) -> dict:
+    return {
+        "run_dir": str(run_dir), "trials": inserted, "episodes": progress.episodes,
+        "learner_steps": stats.get("steps", 0), "weights_version": stats.get("version", 0),
+        "loss": stats.get("loss"), "checkpoint": str(checkpoint_path(run_dir)), **extra,
+    }
+
+
+def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> dict:
+    """Everything in this process: shards, learner and one actor, interleaved episode by episode.
+
+    Limits come from ``cfg.run``; an existing RUN/checkpoints/latest.pt is resumed from.
+    """
+    shards = open_local_shards(run_dir / "replay", cfg)
+    learner = LearnerProcess(cfg, shards, str(run_dir), seed=cfg.run.seed)
+    actor = GraspActor(cfg, actor_id=0, seed=cfg.run.seed, replay=ReplayClient(shards, cfg, seed=cfg.run.seed + 1))
+    progress = Progress(cfg, run_dir, quiet)
+    t0 = last_ckpt = time.time()
+    stats = learner.train(0)
+    version, box = stats["weights"]
+    actor.set_weights(version, box[0])
+    published = 1
+    inserted = learner.inserted()
+    try:
+        while not _done(cfg, inserted, t0, stop):
+            eps = epsilon_at(cfg, inserted)
+            progress.add_reports(actor.run_episodes(1, eps))
+            stats = learner.train(LEARNER_CHUNK_STEPS)
+            while stats["ran"] == LEARNER_CHUNK_STEPS and not stop["flag"]:
+                stats = learner.train(LEARNER_CHUNK_STEPS)
+            if stats["weights"] is not None:
+                version, box = stats["weights"]
+                actor.set_weights(version, box[0])
+                published += 1
+            inserted = stats["inserted"]
+            progress.tick(inserted, stats, eps)
+            if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
+                learner.checkpoint(eps, inserted)
+                last_ckpt = time.time()
+    finally:
+        actor.close()
+        inserted = learner.inserted()
+        learner.checkpoint(epsilon_at(cfg, inserted), inserted)
+        progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
+        progress.close()
+        for s in shards:
+            s.close()
+    return _summary(run_dir, inserted, stats, progress, {"mode": "local", "weights_published": published})
+
+
+class ActorProcess:
+    """A GraspActor inside a Ray actor process: fetches weights by reference when they are newer."""
+
+    def __init__(self, cfg: Config, actor_id: int, seed: int, shards: list) -> None:
+        import ray
+
+        incarnation = 0
+        if ray.get_runtime_context().was_current_actor_reconstructed:
+            incarnation = time.time_ns() % (2**31)  # a restarted actor must not replay its old random stream
+        self.actor = GraspActor(
+            cfg, actor_id, seed + 7919 * incarnation, ReplayClient(shards, cfg, seed=seed * 1000 + actor_id + incarnation)
+        )
+        self.incarnation = incarnation
+
+    def run_episodes(self, n: int, epsilon: float, version: int, box: list, first_episode: int) -> list[EpisodeReport]:
+        import ray
+
+        if version > self.actor.version:
+            self.actor.set_weights(version, ray.get(box[0]))
+        self.actor.episode = max(self.actor.episode, first_episode)
+        return self.actor.run_episodes(n, epsilon)
+
+    def pid(self) -> int:
+        return os.getpid()
+
+    def close(self) -> None:
+        self.actor.close()
+
+
+def run_distributed(
+    cfg: Config, run_dir: Path, stop: dict, n_actors: int, address: str | None = None, quiet: bool = False
+) -> dict:
+    """Replay shards, the learner and ``n_actors`` grasp actors as restartable Ray actors.
+
+    Limits come from ``cfg.run``; an existing RUN/checkpoints/latest.pt is resumed from.
+    """
+    import ray
+    from ray.exceptions import RayActorError, RayTaskError
+
+    if address:
+        ray.init(address=address, log_to_driver=False)
+    else:
+        # Logical CPUs: actors and the learner share the physical cores of a laptop.
+        ray.init(num_cpus=max(os.cpu_count() or 1, n_actors + 1), include_dashboard=False, log_to_driver=False)
+    try:
+        dashboard = ray.get_runtime_context().dashboard_url if address else None
+    except AttributeError:
+        dashboard = None
+    gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 and cfg.learner.device != "cpu" else 0
+    shards = start_remote_shards(run_dir / "replay", cfg)
+    learner_cls = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1)(LearnerProcess)
+    learner = learner_cls.remote(cfg, shards, str(run_dir), cfg.run.seed)
+    actor_cls = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)(ActorProcess)
+    actors = [
+        actor_cls.options(scheduling_strategy="SPREAD").remote(cfg, i, cfg.run.seed, shards) for i in range(n_actors)
+    ]
+    progress = Progress(cfg, run_dir, quiet, dashboard)
+    stats = ray.get(learner.train.remote(0))
+    version, box = stats["weights"]
+    published, restarts = 1, 0
+    next_episode = [0] * n_actors
+    pending: dict = {}
+
+    def submit(a: int) -> None:
+        eps = epsilon_at(cfg, stats["inserted"])
+        pending[actors[a].run_episodes.remote(cfg.actor.weights_poll_episodes, eps, version, box, next_episode[a])] = a
+        next_episode[a] += cfg.actor.weights_poll_episodes
+
+    for a in range(n_actors):
+        submit(a)
+    learner_future = learner.train.remote(LEARNER_CHUNK_STEPS)
+    t0 = last_ckpt = time.time()
+    try:
+        while not _done(cfg, stats["inserted"], t0, stop):
+            ready, _ = ray.wait(list(pending) + [learner_future], num_returns=1, timeout=1.0)
+            for ref in ready:
+                if ref is learner_future:
+                    stats = ray.get(ref)
+                    if stats["weights"] is not None:
+                        version, box = stats["weights"]
+                        published += 1
+                    learner_future = learner.train.remote(LEARNER_CHUNK_STEPS)
+                    continue
+                a = pending.pop(ref)
+                try:
+                    progress.add_reports(ray.get(ref))
+                except (RayActorError, RayTaskError) as e:
+                    restarts += 1
+                    print(f"actor {a}: {type(e).__name__}; it restarts and continues", flush=True)
+                submit(a)
+            progress.tick(stats["inserted"], stats, epsilon_at(cfg, stats["inserted"]))
+            if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
+                ray.get(learner.checkpoint.remote(epsilon_at(cfg, stats["inserted"]), stats["inserted"]))
+                last_ckpt = time.time()
+    finally:
+        # Let every running chunk finish its episode (no partial trials), then checkpoint.
+        ray.wait(list(pending), num_returns=len(pending), timeout=120)
+        for ref in list(pending):
+            try:
+                progress.add_reports(ray.get(ref, timeout=0))
+            except Exception as e:  # noqa: BLE001 - an actor lost at shutdown loses only unfinished episodes
+                print(f"actor {pending[ref]}: last chunk lost at shutdown ({type(e).__name__})", flush=True)
+        for a, handle in enumerate(actors):
+            try:
+                ray.get(handle.close.remote(), timeout=60)
+            except Exception as e:  # noqa: BLE001
+                print(f"actor {a}: close failed at shutdown ({type(e).__name__})", flush=True)
+        stats = ray.get(learner_future)
+        inserted = ray.get(learner.inserted.remote())
+        ckpt = ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted))
+        history = ray.get(learner.history.remote())
+        progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
+        progress.close()
+        ray.shutdown()
+    (Path(run_dir) / "history.json").write_text(json.dumps(history))
+    return _summary(
+        run_dir, inserted, stats, progress,
+        {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts, "checkpoint": ckpt},
+    )
