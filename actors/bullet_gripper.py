@@ -34,9 +34,10 @@ from common.gripper import GripperModel, GripperSpec, aperture_from_points, join
 class BulletGripper:
     """A gripper body in one PyBullet client, moved kinematically by a fixed constraint on its base."""
 
-    def __init__(self, client: int, spec: GripperSpec, scale: float = 1.0) -> None:
+    def __init__(self, client: int, spec: GripperSpec, scale: float = 1.0, visual_from_collision: bool = False) -> None:
+        """``visual_from_collision`` renders the collision geometry (what the encoding sees)."""
         self.client, self.spec, self.scale = client, spec, float(scale)
-        urdf = scaled_urdf(spec, self.scale)
+        urdf = scaled_urdf(spec, self.scale, visual_from_collision)
         self.body_id = p.loadURDF(str(urdf), [0, 0, 2.0], useFixedBase=False,
                                   flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
         if self.body_id < 0:

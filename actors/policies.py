@@ -135,4 +135,12 @@ def make_policy(name: str, cfg: Config, **kwargs) -> Policy:
         return RandomPolicy(cfg, **kwargs)
     if name == "heuristic":
         return HeuristicPolicy(cfg, **kwargs)
+    if name.startswith("checkpoint:"):
+        # kwargs: mode (fix-config | fix-gripper | adagrasp), grippers [(key, encoding)], epsilon, device
+        from common.policy import LearnedPolicy
+
+        try:
+            return LearnedPolicy.from_checkpoint(name[len("checkpoint:") :], cfg, **kwargs)
+        except ValueError as e:
+            raise ValueError(f"--policy {name}: {e}") from None
     raise ValueError(f"--policy {name}: unknown policy (known: {', '.join(POLICY_NAMES)})")

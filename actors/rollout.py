@@ -66,7 +66,8 @@ def _config(args) -> Config:
 
 
 def draw_trial(path: Path, sim: Simulation, result: TrialResult, aperture: float, title: str) -> None:
-    """Save a PNG of the trial's heightmap (x right, y up) with the grasp drawn across the jaws."""
+    """Save a PNG of the trial's heightmap (x right, y up) with the grasp drawn across the jaws
+    (green: success, red: failure) and the obstacle cells outlined in red."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,6 +78,11 @@ def draw_trial(path: Path, sim: Simulation, result: TrialResult, aperture: float
     fig, ax = plt.subplots(figsize=(4.2, 4.2), dpi=100)
     im = ax.imshow(hm.T, origin="lower", cmap="viridis", extent=(*grid.x_range, *grid.y_range), vmin=0.0)
     fig.colorbar(im, ax=ax, fraction=0.046, label="height (m)")
+    obstacle = result.observation.obstacle.max(axis=2) > 0.5
+    if obstacle.any():
+        xs = np.linspace(grid.x_range[0], grid.x_range[1], hm.shape[0])
+        ys = np.linspace(grid.y_range[0], grid.y_range[1], hm.shape[1])
+        ax.contour(xs, ys, obstacle.T.astype(float), levels=[0.5], colors="red", linewidths=1.0)
     x, y, _ = result.outcome.grasp_position
     d = np.array([np.cos(result.outcome.yaw), np.sin(result.outcome.yaw)]) * aperture / 2
     colour = "lime" if result.outcome.success else "red"
@@ -120,7 +126,7 @@ def run(args) -> dict:
                     title = (
                         f"ep {e} step {result.step}: {'success' if result.outcome.success else 'failure'}  "
                         f"cell ({i},{j}) k={k} opening={openings[s]:.3f}\n"
-                        f"{policy.name}, score {result.score:.2f}, objects {', '.join(result.object_ids)}"
+                        f"{policy.name}, score {result.score:.2f}, {len(result.object_ids)} objects (obstacles outlined red)"
                     )
                     draw_trial(png_dir / f"trial_{trials - 1:03d}.png", sim, result, apertures[s], title)
     return {

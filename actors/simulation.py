@@ -9,12 +9,15 @@ Scenes (as in the paper): ``single`` (1 target), ``multi`` (``sim.multi_objects`
 before the roles are assigned). Objects are dropped one after another, each with a random
 orientation and its centre uniform in a square of half-size ``sim.drop_half_extent``, its
 lowest point ``sim.drop_gap`` above the highest object already down, inside a square fence of
-half-size ``sim.fence_half_extent``. Each drop ends when every object is at rest (all linear and
-angular speeds below ``sim.settle_velocity``, checked every few steps) or after
-``sim.settle_max_s``; an object that rests too tall for the grid or outside the fence is redrawn.
+half-size ``sim.fence_half_extent``. Each drop ends when every object is at rest (no point of
+any object moved faster than ``sim.settle_velocity`` on average over two windows of a few steps,
+see :meth:`Simulation.settle`) or after ``sim.settle_max_s``; an object that rests too tall for
+the grid or outside the fence is redrawn.
 Then the fence is lowered under the table (like the paper's fence, which is removed once the
-objects are down) and the scene settles once more. The fence is generated in code (four static
-boxes) and moved rather than re-created.
+objects are down) and the scene settles once more; if an object then rolled or slid out of the
+fence square (where grasps can reach) the whole scene is dropped again, at most
+``sim.drop_retries`` times. The fence is generated in code (four static boxes) and moved rather
+than re-created.
 
 Rendering: PyBullet's TinyRenderer (CPU, works in DIRECT), one depth and segmentation image per
 camera at exactly the pixels ``common.camera.scene_cameras`` asks for. TinyRenderer samples pixel
@@ -26,7 +29,7 @@ Call loop::
 
     with Simulation(cfg, seed=7) as sim:
         sim.reset_scene("multi", "train")           # drop, settle, lower the fence
-        gripper = sim.load_gripper(get_gripper("parallel_jaw"), scale=1.0)
+        gripper = sim.load_gripper(get_gripper("parallel_jaw-0"), scale=1.0)
         while sim.targets:
             obs = sim.observe()                       # common.observation.Observation
             outcome = actors.grasp.execute_grasp(sim, gripper, action, openings, obs.heightmap)
@@ -37,13 +40,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pybullet
 
 from actors.bullet_gripper import BulletGripper
-from actors.objects import ObjectModel, object_set
+from actors.objects import ObjectModel, load_object, object_set
 from common.camera import Intrinsics, depth_from_opengl_zbuffer, opengl_view_matrix, scene_cameras
 from common.config import Config, ConfigError
 from common.geometry import Transform
@@ -85,7 +87,7 @@ class SceneObject:
     body: int
     """PyBullet body id in this simulation's client."""
     name: str
-    """Set-qualified object identifier, ``<source>/<name>``."""
+    """Source-qualified object name (``ObjectModel.name``, e.g. ``random_urdfs/017``)."""
     role: str
     """``target`` or ``obstacle``."""
 
@@ -262,20 +264,12 @@ class Simulation:
         return (q / np.linalg.norm(q)).tolist()
 
     def _load_object(self, model: ObjectModel) -> int:
-        """Load ``model`` at a parking pose; raises SimulationError naming the URDF on failure."""
-        urdf = Path(model.urdf)
-        if not urdf.is_file():
-            raise SimulationError(f"{urdf}: object {model.name}: URDF file not found")
-        try:
-            body = pybullet.loadURDF(
-                str(urdf),
-                basePosition=[0.0, 0.0, 5.0],
-                globalScaling=float(model.scale),
-                flags=pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES,
-                physicsClientId=self.client,
-            )
-        except pybullet.error as e:
-            raise SimulationError(f"{urdf}: object {model.name}: PyBullet cannot load the URDF ({e})") from None
+        """Load ``model`` at a parking pose; raises ObjectSetError or SimulationError (one line
+        naming the URDF) when the file is gone, does not load or has no usable geometry."""
+        urdf = model.urdf
+        body = load_object(
+            self.client, model, position=(0.0, 0.0, 5.0), flags=pybullet.URDF_ENABLE_CACHED_GRAPHICS_SHAPES
+        )
         lo, hi = self.body_aabb(body)
         if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.max(hi - lo) < _MIN_OBJECT_EXTENT:
             pybullet.removeBody(body, physicsClientId=self.client)
@@ -352,13 +346,14 @@ class Simulation:
         tops = [h[3][2] for h in hits if h[0] == body]
         return float(max(tops)) if tops else float(hi[2])
 
+    def _inside_fence(self, body: int) -> bool:
+        """True if the centre of mass of ``body`` lies inside the fence square (x, y)."""
+        offset = self.body_position(body)[:2] - self.centre[:2]
+        return bool(np.all(np.abs(offset) <= self.cfg.sim.fence_half_extent))
+
     def _fits(self, body: int) -> bool:
         """True if ``body`` rests below the grid top and with its centre inside the fence."""
-        lo, hi = self.body_aabb(body)
-        top_ok = self.body_top(body) <= self.grid.z_range[1] - self.grid.voxel_size
-        centre = (lo[:2] + hi[:2]) / 2 - self.centre[:2]
-        inside = np.all(np.abs(centre) <= self.cfg.sim.fence_half_extent)
-        return bool(top_ok and inside)
+        return self.body_top(body) <= self.grid.z_range[1] - self.grid.voxel_size and self._inside_fence(body)
 
     def clear(self) -> None:
         """Remove every object; park the gripper."""
@@ -390,9 +385,8 @@ class Simulation:
                     f"object set {set_name!r}: no object came to rest inside the grid in "
                     f"{sim.drop_retries + 1} draws (sim.drop_retries; last {model.name})"
                 )
-            name = f"{model.source}/{model.name}"
-            dropped.append((body, name))
-            self.objects[body] = SceneObject(body, name, "target")
+            dropped.append((body, model.name))
+            self.objects[body] = SceneObject(body, model.name, "target")
         return dropped
 
     def reset_scene(
@@ -417,19 +411,28 @@ class Simulation:
         n_obstacles = sim.obstacle_obstacles if kind == "obstacle" else 0
         if n_targets < 1:
             raise SimulationError(f"scene {kind}: n: expected at least one target, got {n_targets}")
-        self.clear()
-        self._raise_fence()
-        try:
-            dropped = self._drop_all(models, name, n_targets + n_obstacles)
-        except BaseException:
+        for _attempt in range(sim.drop_retries + 1):
             self.clear()
+            self._raise_fence()
+            try:
+                dropped = self._drop_all(models, name, n_targets + n_obstacles)
+            except BaseException:
+                self.clear()
+                self._lower_fence()
+                raise
             self._lower_fence()
-            raise
+            self.settle()
+            if all(self._inside_fence(b) for b, _ in dropped):
+                break
+        else:
+            self.clear()
+            raise SimulationError(
+                f"object set {name!r}: objects rolled out of the fence square in {sim.drop_retries + 1} "
+                f"{kind} scenes in a row (sim.drop_retries)"
+            )
         order = self.rng.permutation(len(dropped)) if n_obstacles else np.arange(len(dropped))
         roles = {dropped[k][0]: ("target" if rank < n_targets else "obstacle") for rank, k in enumerate(order)}
         self.objects = {b: SceneObject(b, nm, roles[b]) for b, nm in dropped}
-        self._lower_fence()
-        self.settle()
 
     # ---------------------------------------------------------------- physics
 

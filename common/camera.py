@@ -74,7 +74,7 @@ class Intrinsics:
     def pixel_rays(self) -> np.ndarray:
         """(H, W, 3) float64 camera-frame ray of every pixel centre, scaled to z = 1 (so a point at
         depth d along the optical axis is ``d * ray``)."""
-        v, u = np.meshgrid(np.arange(self.height, dtype=np.float64), np.arange(self.width, dtype=np.float64), indexing="ij")
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1)
 
     def opengl_projection(self, near: float, far: float, sample_offset: float = 0.0) -> np.ndarray:

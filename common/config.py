@@ -218,7 +218,7 @@ class ReplayConfig:
     capacity: int = 12000
     """FIFO capacity in trials across all shards (paper 12,000)."""
     chunk_trials: int = 64
-    """Trials per Zarr chunk along the time axis."""
+    """Trials per Zarr chunk of the per-trial columns (volumes are chunked one trial per chunk)."""
     max_inflight: int = 8
     """Maximum outstanding insert/sample requests per client (bounds the object store)."""
     tsdf_levels: int = 127
@@ -477,7 +477,7 @@ def _cross_checks(cfg: Config, source: str) -> None:
 
 
 def config_path(name_or_path: str | Path) -> Path:
-    """Resolve ``default`` / ``paper`` / ``cluster`` to the packaged YAML, else treat it as a path."""
+    """Resolve ``default`` / ``paper`` / ``tiny`` to the packaged run YAML, else treat it as a path."""
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") or p.exists():
         return p

@@ -21,6 +21,7 @@ Usage::
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import importlib.resources
 import importlib.util
@@ -53,7 +54,7 @@ SPLITS = ("train", "test")
 """Data splits; every real gripper is in the test split."""
 COUPLING_MODES = ("mimic", "target")
 """mimic: follow the driver's measured position; target: follow the driver's commanded target."""
-FORMAT_VERSION = "4"
+FORMAT_VERSION = "5"
 """Bumped whenever the processed-URDF layout changes, so cached files are rebuilt."""
 CACHE_ENV = "ADAGRASP_CACHE"
 """Environment variable that overrides the user cache directory."""
@@ -596,12 +597,32 @@ def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = F
             for v in link.findall("visual"):
                 link.remove(v)
             for c in link.findall("collision"):
-                v = ET.SubElement(link, "visual")
-                for child in c:
-                    v.append(child)
+                v = copy.deepcopy(c)
+                v.tag = "visual"
+                for mesh in v.iter("mesh"):
+                    sc = mesh.get("scale", "1 1 1")
+                    mesh.set("filename", str(_hull_file(Path(mesh.get("filename")), sc, spec.urdf.parent / "hulls")))
+                    mesh.set("scale", "1 1 1")
+                link.append(v)
     robot = scale_robot(robot, scale)
     ET.indent(robot)
     _atomic_write(out, ET.tostring(robot, encoding="unicode"))
+    return out
+
+
+def _hull_file(mesh_path: Path, scale_attr: str, folder: Path) -> Path:
+    """OBJ of the convex hull of a mesh file scaled by ``scale_attr`` ("sx sy sz"); cached in ``folder``."""
+    import trimesh
+
+    key = hashlib.sha1(f"{mesh_path}|{scale_attr}".encode()).hexdigest()[:12]
+    out = folder / f"{mesh_path.stem}-{key}.obj"
+    if not out.is_file():
+        tm = trimesh.load(mesh_path, force="mesh")
+        tm.apply_scale(np.broadcast_to(np.array([float(v) for v in scale_attr.split()]), (3,)))
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp.obj")
+        tm.convex_hull.export(tmp)
+        os.replace(tmp, out)
     return out
 
 
@@ -617,7 +638,8 @@ class Part:
     size: np.ndarray
     """box: half extents (3,); sphere: (radius,); cylinder: (radius, half length); mesh: unused."""
     mesh: object = None
-    """trimesh.Trimesh in the part frame for meshes (and a triangulation of primitives)."""
+    """trimesh.Trimesh in the part frame: the convex hull for meshes (PyBullet collides a moving
+    body's meshes as their convex hulls), a triangulation for primitives."""
 
 
 class GripperModel:
@@ -667,7 +689,7 @@ class GripperModel:
                     tm.apply_scale(np.broadcast_to(sc, (3,)))
                     if not np.all(np.isfinite(tm.vertices)):
                         raise GripperSpecError(f"{spec.spec_path}: source: mesh {g.mesh.filename} has non-finite vertices")
-                    part = Part(link.name, T_lp, "mesh", np.zeros(0), tm)
+                    part = Part(link.name, T_lp, "mesh", np.zeros(0), tm.convex_hull)
                 else:
                     continue
                 self.parts.append(part)

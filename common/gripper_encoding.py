@@ -8,8 +8,10 @@ Signed distance per part, evaluated only on the grid block that the part's posed
 (plus the truncation distance) covers, combined by a minimum over parts:
 
 - boxes, spheres, cylinders: exact analytic distance;
-- meshes: nearest of dense surface samples (spacing a third of a voxel, KD-tree built once per
-  gripper and scale, in the part frame), signed by that sample's face normal.
+- meshes (their convex hulls, which is what PyBullet collides): nearest of dense surface
+  samples (spacing a third of a voxel, KD-tree built once per gripper and scale, in the part
+  frame), signed by that sample's normal; beyond the truncation only the sign is computed, from
+  a coarse subsample.
 
 Grid frame: the TCP frame at yaw 0 (fingers along -z, closing along x); voxel (i, j, k) has its
 centre at ``((i + 0.5 - gX / 2) v, (j + 0.5 - gY / 2) v, (k + 0.5) v - tcp_height)``.
@@ -39,6 +41,9 @@ ENCODING_VERSION = "1"
 """Bumped when the encoding changes, so disk caches are not reused across versions."""
 SAMPLES_PER_VOXEL = 3.0
 """Mesh surface samples per voxel edge (sample spacing = voxel_size / this)."""
+KD_EPS = 0.1
+"""Approximate nearest-sample search: the sample found is within (1 + KD_EPS) of the nearest
+(below 1 mm difference on the real grippers at the default grid; 1.6x faster)."""
 
 
 def grid_points(grid: GripperGridConfig) -> np.ndarray:
@@ -80,17 +85,28 @@ class _PartField:
             pts = np.concatenate([pts, np.asarray(m.vertices)])
             normals = np.concatenate([normals, np.asarray(m.vertex_normals)])
             self.tree, self.normals = cKDTree(pts), normals
+            step = max(1, len(pts) // 2000)
+            self.coarse, self.coarse_normals = cKDTree(pts[::step]), normals[::step]
 
-    def sdf(self, p: np.ndarray) -> np.ndarray:
-        """(N,) signed distance (m) of points (N, 3) in the part frame; negative inside."""
+    def sdf(self, p: np.ndarray, bound: float) -> np.ndarray:
+        """(N,) signed distance (m) of points (N, 3) in the part frame; negative inside.
+
+        Mesh distances are exact only up to ``bound``; farther points get +-``bound``.
+        """
         if self.kind == "box":
             return _box_sdf(p, self.size)
         if self.kind == "sphere":
             return np.linalg.norm(p, axis=-1) - self.size[0]
         if self.kind == "cylinder":
             return _cylinder_sdf(p, self.size[0], self.size[1])
-        d, idx = self.tree.query(p, k=1)
+        d, idx = self.tree.query(p, k=1, distance_upper_bound=bound, eps=KD_EPS)
+        far = ~np.isfinite(d)
+        idx[far] = 0
         sign = np.einsum("ij,ij->i", p - self.tree.data[idx], self.normals[idx])
+        if far.any():
+            _, cidx = self.coarse.query(p[far], k=1)
+            sign[far] = np.einsum("ij,ij->i", p[far] - self.coarse.data[cidx], self.coarse_normals[cidx])
+            d[far] = bound
         return np.where(sign < 0.0, -d, d)
 
 
@@ -121,7 +137,7 @@ class _GripperField:
             pts = self.points[sl].reshape(-1, 3)
             local = (pts - T[:3, 3]) @ T[:3, :3]
             block = out[sl]
-            np.minimum(block, field.sdf(local).reshape(block.shape), out=block)
+            np.minimum(block, field.sdf(local, trunc * 1.01).reshape(block.shape), out=block)
         np.clip(out, -trunc, trunc, out=out)
         return out.astype(np.float32)
 

@@ -1,40 +1,40 @@
-"""The AdaGrasp network (Xu et al., ICRA 2021): scene and gripper encoders, cross-convolution, decoder.
+"""The AdaGrasp network (Xu et al., ICRA 2021): scene and gripper encoders, cross-correlation, decoder.
 
 Layout (both scales come from the config; ``model.feature_cell`` is where the two meet)::
 
-    scene (B, 2, X, Y, Z)  -> rotate about z by theta_k (bilinear, border)
-        -> 3-D conv 2->16 (stride 1) -> 3-D conv 16->32 -> 3-D conv 32->64   (stride 2 until the
-           feature cell is reached) -> z folded into channels -> 1x1 conv -> 64
-        -> 2 residual blocks (64) -> 3x3 conv -> C = 16 channels on the (Fx, Fy) feature grid
-    gripper (N, 2, gX, gY, gZ) (channel 0 = TSDF at the initial opening, 1 = closed)
-        -> 3-D conv ->16 -> 3-D conv 16->64 (stride 2 until the feature cell) -> z folded
-        -> 1x1 conv -> 2 residual blocks -> 3x3 conv -> C = 16 channels: kernel (N, C, Kx, Ky)
-    cross-convolution: depthwise correlation of the scene features with each kernel (one grouped
-        conv), divided by Kx * Ky; an even kernel puts its TCP on a cell corner, so the result
-        lives on the (Fx + 1, Fy + 1) lattice of feature-cell corners
-    decoder: conv 16->64, residual block, then per factor 2 of feature_cell / voxel_size a conv,
-        an exact bilinear resampling to the next finer lattice of cell centres and a residual
-        block; a 1x1 conv gives two logits per scene cell (channel 0 = failure, 1 = success)
-    -> rotate back by -theta_k -> logits (B, 2, X, Y) on the scene grid
+    scene (B, 2, X, Y, Z)  -> rotated about z by theta_k (bilinear, border)
+        -> 3-D conv 2->16 -> 3-D conv 16->32 -> 3-D conv 32->64 (stride 2 from the second layer
+           until the feature cell is reached) -> z folded into channels -> 1x1 conv -> 64
+        -> 2 residual blocks (64) -> 3x3 conv -> C = model.channels (16) on the (Fx, Fy) feature grid
+    gripper (N, 2, gX, gY, gZ) (channel 0 = TSDF at the initial opening, 1 = closed; init-only
+        reads channel 0) -> 3-D conv ->16 -> 3-D conv 16->64 (stride 2 until the feature cell)
+        -> z folded -> 1x1 conv -> 2 residual blocks -> 3x3 conv -> kernel (N, C, K, K)
+    cross-correlation: each channel of the scene features with the same channel of the kernel
+        (depthwise), divided by K * K; an even K puts the kernel's TCP on a cell corner, so the
+        result lives on the (Fx + 1, Fy + 1) lattice of feature-cell corners
+    decoder: conv C->64, residual block, then per factor 2 of feature_cell / voxel_size a conv, an
+        exact bilinear resampling onto the centres of cells half the size and a residual block;
+        a 1x1 conv gives two logits per scene cell (channel 0 = failure, 1 = success)
+    -> rotated back by -theta_k -> logits (B, 2, X, Y) on the scene grid
 
 Rotation convention: the score at scene cell (i, j) of rotation k is the grasp whose TCP is at
 the centre of cell (i, j) with yaw theta_k = 2 pi k / R about +z, i.e. the gripper's own x axis
-(the gripper grid's axis 0) turned from world x towards world y by theta_k. Rotations are about
-the grid centre in cell units (``align_corners=True``), so multiples of 90 degrees map cells onto
-cells exactly.
+(axis 0 of its grid) turned from world x towards world y by theta_k. Rotations are about the
+grid centre in cell units, so multiples of 90 degrees map cells onto cells exactly.
 
-Variants (``model.variant``): ``adagrasp`` (open + closed gripper TSDF), ``init-only`` (open only),
-``scene-only`` (no gripper: the scene features go straight to the decoder; every gripper and
-opening gets the same map). ``model.rotate``: ``scene`` (the paper: the scene is re-encoded once
-per rotation) or ``kernel`` (a speed option: the scene is encoded once and the gripper kernel,
-zero-padded to hold any rotation, is rotated instead; the scene features are not rotation
-equivariant, so scores differ from ``scene``).
+Variants (``model.variant``): ``adagrasp`` (open + closed gripper TSDF), ``init-only`` (open
+only), ``scene-only`` (no gripper: the scene features go straight to the decoder; every gripper
+and opening gets the same map). ``model.rotate``: ``scene`` (the paper: the scene is re-encoded
+once per rotation) or ``kernel`` (a speed option: the scene is encoded once and the gripper
+kernel, zero-padded to hold any rotation, is rotated instead; the scene features are not
+rotation equivariant, so its scores differ from ``scene``).
 
 Use::
 
     model = build_model(cfg).eval()
     probs = model.predict(scene, [enc_a, enc_b], keys=["a", "b"])  # (G, S_max, R, X, Y)
-    logits = model.train().forward_train(scene_b, gripper_b, k_b)    # (B, 2, X, Y)
+    model.train()
+    logits = model.forward_train(scene_b, gripper_b, k_b)          # (B, 2, X, Y)
     loss = model.loss(logits, action_b, label_b)
 """
 
@@ -52,8 +52,12 @@ from common.config import Config, GripperGridConfig, ModelConfig, SceneGridConfi
 
 SUCCESS = 1
 """Index of the success logit along the logits' channel axis (0 is failure)."""
+VARIANTS = ("adagrasp", "init-only", "scene-only")
+"""Model variants (``model.variant``)."""
 _KERNEL_CACHE_SIZE = 64
-"""Gripper kernels kept per model (least recently used dropped first)."""
+"""Gripper kernel sets kept per model (least recently used dropped first)."""
+_TAPS_CACHE_SIZE = 256
+"""Rotation sampling tables kept per model."""
 
 
 class NetworkConfigError(ValueError):
@@ -69,14 +73,13 @@ class ConvBlock(nn.Module):
     """Conv (2-D or 3-D) -> optional batch norm -> optional ReLU.
 
     In eval mode the batch norm is folded into the convolution's weights on the fly (one pass
-    over the activations instead of three).
+    over the activations instead of two).
     """
 
-    def __init__(self, dim: int, cin: int, cout: int, kernel=3, stride=1, norm: bool = True, relu: bool = True):
+    def __init__(self, dim: int, cin: int, cout: int, kernel: int = 3, stride: int = 1, norm: bool = True, relu: bool = True):
         super().__init__()
         conv = nn.Conv3d if dim == 3 else nn.Conv2d
-        pad = tuple(k // 2 for k in kernel) if isinstance(kernel, tuple) else kernel // 2
-        self.conv = conv(cin, cout, kernel, stride=stride, padding=pad, bias=not norm)
+        self.conv = conv(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=not norm)
         self.norm = (nn.BatchNorm3d if dim == 3 else nn.BatchNorm2d)(cout) if norm else None
         self.relu = relu
         self._fn = F.conv3d if dim == 3 else F.conv2d
@@ -84,10 +87,10 @@ class ConvBlock(nn.Module):
     def _folded(self) -> tuple[torch.Tensor, torch.Tensor]:
         bn = self.norm
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
-        shape = (-1,) + (1,) * (self.conv.weight.dim() - 1)
         bias = bn.bias - bn.running_mean * scale
         if self.conv.bias is not None:
             bias = bias + self.conv.bias * scale
+        shape = (-1,) + (1,) * (self.conv.weight.dim() - 1)
         return self.conv.weight * scale.view(shape), bias
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -117,7 +120,7 @@ class ResBlock2D(nn.Module):
 class Encoder(nn.Module):
     """3-D conv stack down to the feature cell, z folded into channels, 2-D residual blocks.
 
-    Input (B, cin, X, Y, Z) float32 -> (B, cout, X / f, Y / f) with f = feature_cell / voxel_size.
+    Input (B, cin, X, Y, Z) float32 -> (B, cout, X / f, Y / f) with f = 2 ** down.
     """
 
     def __init__(
@@ -183,32 +186,85 @@ def _fft_size(n: int) -> int:
         m += 1
 
 
-def rotation_grid(theta: torch.Tensor, nx: int, ny: int) -> torch.Tensor:
-    """Sampling grid (B, nx, ny, 2) float32 for ``grid_sample(..., align_corners=True)``.
+# --------------------------------------------------------------------------------------
+# Rotation about the grid centre
+# --------------------------------------------------------------------------------------
 
-    Output cell (i, j) of a (B, C, nx, ny) tensor reads the input at the rotation by ``theta``
-    (B,) radians (counter-clockwise, from axis 0 towards axis 1) of its position about the grid
-    centre, in cell units. So ``out(q) = in(R(theta) q)``: the content turns by -theta.
+
+def rotation_taps(theta: float, nx: int, ny: int, zeros: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear sampling table of a rotation about the centre of an (nx, ny) grid.
+
+    Output cell (i, j) reads the input at R(theta) (i - cx, j - cy) + (cx, cy), cell units,
+    theta in radians counter-clockwise from axis 0 towards axis 1, (cx, cy) = ((nx-1)/2, (ny-1)/2):
+    out(q) = in(R(theta) q), i.e. the content turns by -theta. Returns flat source indices
+    (nx * ny, 4) int64 and weights (nx * ny, 4) float32. Outside the grid the sample is clamped
+    to the border, or is zero if ``zeros``.
     """
-    theta = theta.detach().to("cpu", torch.float64)
-    c, s = torch.cos(theta), torch.sin(theta)
-    c = torch.where(c.abs() < 1e-12, torch.zeros_like(c), c)
-    s = torch.where(s.abs() < 1e-12, torch.zeros_like(s), s)
+    c, s = math.cos(theta), math.sin(theta)
+    c, s = (0.0 if abs(c) < 1e-12 else c), (0.0 if abs(s) < 1e-12 else s)
     hx, hy = (nx - 1) / 2.0, (ny - 1) / 2.0
-    ci = (torch.arange(nx, dtype=torch.float64) - hx).view(1, nx, 1)
-    cj = (torch.arange(ny, dtype=torch.float64) - hy).view(1, 1, ny)
-    c, s = c.view(-1, 1, 1), s.view(-1, 1, 1)
-    src_i = c * ci - s * cj + hx
-    src_j = s * ci + c * cj + hy
-    gi = src_i / hx - 1.0 if nx > 1 else torch.zeros_like(src_i)
-    gj = src_j / hy - 1.0 if ny > 1 else torch.zeros_like(src_j)
-    return torch.stack([gj, gi], dim=-1).float()
+    ci = (np.arange(nx, dtype=np.float64) - hx)[:, None]
+    cj = (np.arange(ny, dtype=np.float64) - hy)[None, :]
+    si = c * ci - s * cj + hx
+    sj = s * ci + c * cj + hy
+    if not zeros:
+        si, sj = np.clip(si, 0, nx - 1), np.clip(sj, 0, ny - 1)
+    i0, j0 = np.floor(si).astype(np.int64), np.floor(sj).astype(np.int64)
+    wi, wj = si - i0, sj - j0
+    idx, wts = [], []
+    for di, dj, w in ((0, 0, (1 - wi) * (1 - wj)), (1, 0, wi * (1 - wj)), (0, 1, (1 - wi) * wj), (1, 1, wi * wj)):
+        ii, jj = i0 + di, j0 + dj
+        inside = (ii >= 0) & (ii < nx) & (jj >= 0) & (jj < ny)
+        idx.append(np.clip(ii, 0, nx - 1) * ny + np.clip(jj, 0, ny - 1))
+        wts.append(np.where(inside, w, 0.0))
+    return np.stack(idx, -1).reshape(-1, 4), np.stack(wts, -1).reshape(-1, 4).astype(np.float32)
 
 
-def rotate2d(x: torch.Tensor, theta: torch.Tensor, padding_mode: str = "border") -> torch.Tensor:
-    """Sample (B, C, nx, ny) ``x`` at the positions rotated by ``theta`` (B,) rad: out(q) = x(R q)."""
-    grid = rotation_grid(theta, x.shape[2], x.shape[3]).to(x.device)
-    return F.grid_sample(x, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)
+class Rotator:
+    """Rotates stacks of (nx, ny) maps whose per-cell values are contiguous rows; caches tables."""
+
+    def __init__(self) -> None:
+        self._taps: OrderedDict = OrderedDict()
+
+    def taps(self, theta: float, nx: int, ny: int, zeros: bool, device) -> tuple[torch.Tensor, torch.Tensor]:
+        key = (round(float(theta), 12), nx, ny, zeros, str(device))
+        hit = self._taps.get(key)
+        if hit is None:
+            idx, w = rotation_taps(float(theta), nx, ny, zeros)
+            hit = (torch.from_numpy(idx).to(device), torch.from_numpy(w).to(device))
+            self._taps[key] = hit
+            while len(self._taps) > _TAPS_CACHE_SIZE:
+                self._taps.popitem(last=False)
+        return hit
+
+    def rows(self, table: torch.Tensor, theta, nx: int, ny: int, zeros: bool = False) -> torch.Tensor:
+        """Rotate ``table`` (B, nx * ny, D) by ``theta`` (T,) rad, T == B or B == 1 -> (T, nx * ny, D)."""
+        b, cells, d = table.shape
+        theta = [float(t) for t in torch.as_tensor(theta, dtype=torch.float64).reshape(-1)]
+        assert cells == nx * ny and (b == len(theta) or b == 1), (table.shape, len(theta))
+        idx, wts = [], []
+        for n, t in enumerate(theta):
+            i, w = self.taps(t, nx, ny, zeros, table.device)
+            idx.append(i + (n * cells if b > 1 else 0))
+            wts.append(w)
+        out = F.embedding_bag(
+            torch.cat(idx), table.reshape(b * cells, d), per_sample_weights=torch.cat(wts).to(table.dtype), mode="sum"
+        )
+        return out.view(len(theta), cells, d)
+
+    def maps(self, x: torch.Tensor, theta, zeros: bool = False) -> torch.Tensor:
+        """Rotate (B, C, nx, ny) ``x`` by ``theta`` (T,) rad: out(q) = x(R q); channels-last result."""
+        b, c, nx, ny = x.shape
+        table = x.permute(0, 2, 3, 1).reshape(b, nx * ny, c)
+        out = self.rows(table, theta, nx, ny, zeros)
+        return out.view(-1, nx, ny, c).permute(0, 3, 1, 2)
+
+    def volume(self, x: torch.Tensor, theta) -> torch.Tensor:
+        """Rotate (B, C, nx, ny, nz) ``x`` about z by ``theta`` (T,) rad (border); channels-last-3d result."""
+        b, c, nx, ny, nz = x.shape
+        table = x.permute(0, 2, 3, 4, 1).reshape(b, nx * ny, nz * c)
+        out = self.rows(table, theta, nx, ny)
+        return out.view(-1, nx, ny, nz, c).permute(0, 4, 1, 2, 3)
 
 
 # --------------------------------------------------------------------------------------
@@ -230,8 +286,8 @@ class AdaGraspNet(nn.Module):
         self.decoder_chunk = int(model.decoder_chunk)
         self.scene_shape = tuple(int(v) for v in scene_grid.shape)
         self.gripper_shape = tuple(int(v) for v in gripper_grid.shape)
-        if self.variant not in ("adagrasp", "init-only", "scene-only"):
-            raise NetworkConfigError(f"model.variant: unknown variant {self.variant!r}")
+        if self.variant not in VARIANTS:
+            raise NetworkConfigError(f"model.variant: expected one of {list(VARIANTS)}, got {self.variant!r}")
         if self.correlation not in ("fft", "grouped"):
             raise NetworkConfigError(f"model.correlation: expected fft or grouped, got {self.correlation!r}")
         if self.rotate_mode not in ("scene", "kernel"):
@@ -240,40 +296,36 @@ class AdaGraspNet(nn.Module):
         up = _pow2(model.feature_cell / scene_grid.voxel_size, "scene_grid.voxel_size")
         ratio = 2**up
         X, Y, Z = self.scene_shape
-        for name, n in (("x", X), ("y", Y), ("z", Z)):
+        for name, n in (("x_range", X), ("y_range", Y), ("z_range", Z)):
             if n % ratio:
-                raise NetworkConfigError(f"scene_grid.{name}_range: {n} cells is not a multiple of {ratio}")
+                raise NetworkConfigError(f"scene_grid.{name}: {n} cells is not a multiple of {ratio}")
         self.feature_shape = (X // ratio, Y // ratio)
         self.scene_encoder = Encoder(2, (16, 32, 64), up, Z // ratio, 64, self.channels, True, "scene_grid")
 
-        self.kernel_shape = (0, 0)
+        self.kernel_size = 0
         if self.variant != "scene-only":
             gdown = _pow2(model.feature_cell / gripper_grid.voxel_size, "gripper_grid.voxel_size")
             g = 2**gdown
             gx, gy, gz = self.gripper_shape
-            if gx % g or gy % g or gz % g:
+            if gx != gy:
+                raise NetworkConfigError(f"gripper_grid.shape: x and y must be equal, got {self.gripper_shape}")
+            if gx % g or gz % g:
                 raise NetworkConfigError(f"gripper_grid.shape: {self.gripper_shape} is not a multiple of {g}")
             cin = 2 if self.variant == "adagrasp" else 1
             self.gripper_encoder = Encoder(cin, (16, 64), gdown, gz // g, 64, self.channels, False, "gripper_grid")
-            if gx != gy:
-                raise NetworkConfigError(f"gripper_grid.shape: x and y must be equal, got {self.gripper_shape}")
-            self.kernel_shape = (gx // g, gy // g)
+            self.kernel_size = gx // g
 
-        # The cross-correlation of an even kernel lands on cell corners, (Fx + 1, Fy + 1) points;
-        # an odd kernel (or no kernel) lands on the feature-cell centres. Each decoder stage then
-        # resamples exactly (bilinear) onto the centres of cells half the size.
-        self.corners = self.variant != "scene-only" and self.kernel_shape[0] % 2 == 0
+        # An even kernel puts the correlation on cell corners, (Fx + 1, Fy + 1) points; an odd one
+        # (or none) on the feature-cell centres. Each decoder stage resamples exactly onto the
+        # centres of cells half the size.
+        self.corners = self.kernel_size > 0 and self.kernel_size % 2 == 0
         self.lattice0 = tuple(n + 1 if self.corners else n for n in self.feature_shape)
 
-        c = self.channels
         widths = [64] + [64] * max(0, up - 1) + ([32] if up > 0 else [])
-        self.dec_in = ConvBlock(2, c, 64, norm=False)
+        self.dec_in = ConvBlock(2, self.channels, 64, norm=False)
         self.dec_res0 = ResBlock2D(64)
-        self.dec_up = nn.ModuleList()
-        self.dec_res = nn.ModuleList()
-        for u in range(up):
-            self.dec_up.append(ConvBlock(2, widths[u], widths[u + 1]))
-            self.dec_res.append(ResBlock2D(widths[u + 1]))
+        self.dec_up = nn.ModuleList(ConvBlock(2, widths[u], widths[u + 1]) for u in range(up))
+        self.dec_res = nn.ModuleList(ResBlock2D(widths[u + 1]) for u in range(up))
         self.dec_out = nn.Conv2d(widths[-1], 2, kernel_size=1, bias=False)
 
         for m in self.modules():
@@ -288,11 +340,12 @@ class AdaGraspNet(nn.Module):
         self.weights_version = 0
         """Version of the loaded weights; part of the gripper-kernel cache key."""
         self._kernels: OrderedDict = OrderedDict()
+        self._rotator = Rotator()
 
     # ---------------------------------------------------------------- state and cache
 
     def clear_cache(self) -> None:
-        """Forget cached gripper kernels (call after changing weights in place in eval mode)."""
+        """Forget cached gripper kernels (needed only after editing weights in place in eval mode)."""
         self._kernels.clear()
 
     def train(self, mode: bool = True) -> "AdaGraspNet":
@@ -308,6 +361,10 @@ class AdaGraspNet(nn.Module):
         self.load_state_dict(state_dict)
         self.weights_version = int(version)
 
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
     # ---------------------------------------------------------------- pieces
 
     def _check_scene(self, scene: torch.Tensor) -> None:
@@ -320,64 +377,69 @@ class AdaGraspNet(nn.Module):
             f"gripper: expected (N, 2, {', '.join(map(str, self.gripper_shape))}), got {tuple(gripper.shape)}"
         )
 
-    def encode_scene(self, scene: torch.Tensor, theta: torch.Tensor | None) -> torch.Tensor:
-        """Scene (B, 2, X, Y, Z) rotated by ``theta`` (B,) rad (or not, if None) -> features (B, C, Fx, Fy)."""
+    def rotate_scene(self, scene: torch.Tensor, theta) -> torch.Tensor:
+        """Scene (B, 2, X, Y, Z) sampled at positions turned by ``theta`` (T,) rad about the grid
+        centre (T == B, or B == 1 for T rotations of one scene): the scene as the gripper at yaw
+        theta sees it from its own frame."""
+        return self._rotator.volume(scene, theta)
+
+    def rotate_maps(self, maps: torch.Tensor, theta, zeros: bool = False) -> torch.Tensor:
+        """Maps (B, C, nx, ny) sampled at positions turned by ``theta`` (B,) rad about their centre."""
+        return self._rotator.maps(maps, theta, zeros)
+
+    def encode_scene(self, scene: torch.Tensor, theta=None) -> torch.Tensor:
+        """Scene (B, 2, X, Y, Z), rotated by ``theta`` (see :meth:`rotate_scene`) unless None -> (T, C, Fx, Fy)."""
         if theta is not None:
-            b, ch, x, y, z = scene.shape
-            flat = scene.permute(0, 1, 4, 2, 3).reshape(b, ch * z, x, y)
-            flat = rotate2d(flat, theta)
-            scene = flat.reshape(b, ch, z, x, y).permute(0, 1, 3, 4, 2)
+            scene = self.rotate_scene(scene, theta)
         return self.scene_encoder(scene)
 
     def encode_gripper(self, gripper: torch.Tensor) -> torch.Tensor:
-        """Gripper TSDFs (N, 2, gX, gY, gZ) -> kernels (N, C, Kx, Ky); init-only reads channel 0 only."""
+        """Gripper TSDFs (N, 2, gX, gY, gZ) -> kernels (N, C, K, K)."""
         if self.variant == "init-only":
             gripper = gripper[:, :1]
         return self.gripper_encoder(gripper)
 
-    def _pad_kernel(self, kernels: torch.Tensor) -> torch.Tensor:
-        """Zero-pad square kernels (N, C, K, K) so that any rotation about their centre fits; keeps K's parity."""
+    def rotate_kernels(self, kernels: torch.Tensor, theta) -> torch.Tensor:
+        """Kernels (N, C, K, K) turned by ``theta`` (N,) rad about their TCP, zero-padded to
+        (N, C, K', K') so that every rotation fits (K' keeps K's parity)."""
         k = kernels.shape[-1]
         extra = math.ceil((math.sqrt(2.0) * k - k) / 2.0)
-        return F.pad(kernels, (extra, extra, extra, extra))
-
-    def rotate_kernels(self, kernels: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-        """Kernels (N, C, K, K) turned by ``theta`` (N,) rad about their TCP -> (N, C, K', K') zero-padded."""
-        padded = self._pad_kernel(kernels)
-        return rotate2d(padded, -theta, padding_mode="zeros")
+        padded = F.pad(kernels, (extra, extra, extra, extra))
+        neg = -torch.as_tensor(theta, dtype=torch.float64).reshape(-1)
+        return self.rotate_maps(padded, neg, zeros=True)
 
     def cross_correlate(self, features: torch.Tensor, kernels: torch.Tensor, pairs: str) -> torch.Tensor:
-        """Depthwise correlation of the scene features with gripper kernels, divided by Kx * Ky.
+        """Depthwise correlation of scene features with gripper kernels, divided by K * K.
 
-        ``pairs == "all"``: features (B, C, Fx, Fy) x kernels (N, C, Kx, Ky) -> (B, N, C, Lx, Ly).
+        ``pairs == "all"``: features (B, C, Fx, Fy) x kernels (N, C, K, K) -> (B, N, C, Lx, Ly).
         ``pairs == "matched"``: features (B, ...) x kernels (B, ...) -> (B, C, Lx, Ly), sample b with kernel b.
-        Output o correlates the kernel with features o - Kx // 2 .. o - Kx // 2 + Kx - 1 (zero
-        outside). ``model.correlation`` picks the method: ``grouped`` (one grouped convolution) or
-        ``fft`` (the same sums through real FFTs of the zero-padded maps).
+        Output o sums kernel cell a times feature o - K // 2 + a (zero outside the grid), so
+        L = F + 1 for even K. ``model.correlation`` picks the method: ``grouped`` (one grouped
+        convolution) or ``fft`` (the same sums through real FFTs of the zero-padded maps).
         """
         b, c, fx, fy = features.shape
         n, c2, kx, ky = kernels.shape
         assert c2 == c and (pairs == "all" or n == b), (features.shape, kernels.shape, pairs)
-        scale = 1.0 / (kx * ky)
+        kernels = kernels * (1.0 / (kx * ky))
         px, py = kx // 2, ky // 2
         if self.correlation == "fft":
             sx, sy = _fft_size(fx + kx - 1), _fft_size(fy + ky - 1)
             ff = torch.fft.rfft2(features, s=(sx, sy))
-            fk = torch.conj(torch.fft.rfft2(kernels * scale, s=(sx, sy)))
+            fk = torch.conj(torch.fft.rfft2(kernels, s=(sx, sy)))
             prod = ff.unsqueeze(1) * fk.unsqueeze(0) if pairs == "all" else ff * fk
             circ = torch.fft.irfft2(prod, s=(sx, sy))  # circ[d] = sum_m f[m + d] k[m], indices mod s
             lx, ly = fx + 2 * px - kx + 1, fy + 2 * py - ky + 1
             return torch.roll(circ, shifts=(px, py), dims=(-2, -1))[..., :lx, :ly]
         if pairs == "all":
             weight = kernels.transpose(0, 1).reshape(c * n, 1, kx, ky)
-            out = F.conv2d(features, weight * scale, padding=(px, py), groups=c)
+            out = F.conv2d(features, weight, padding=(px, py), groups=c)
             return out.view(b, c, n, out.shape[-2], out.shape[-1]).transpose(1, 2)
         weight = kernels.reshape(b * c, 1, kx, ky)
-        out = F.conv2d(features.reshape(1, b * c, fx, fy), weight * scale, padding=(px, py), groups=b * c)
+        out = F.conv2d(features.reshape(1, b * c, fx, fy), weight, padding=(px, py), groups=b * c)
         return out.view(b, c, out.shape[-2], out.shape[-1])
 
     def decode(self, x: torch.Tensor) -> torch.Tensor:
-        """Cross-correlation maps (M, C, Lx, Ly) -> logits (M, 2, X, Y) on the scene grid (unrotated frame)."""
+        """Correlation maps (M, C, Lx, Ly) -> logits (M, 2, X, Y) on the scene grid, in the maps' frame."""
         y = self.dec_res0(self.dec_in(x.contiguous(memory_format=torch.channels_last)))
         corners = self.corners
         for conv, res in zip(self.dec_up, self.dec_res):
@@ -389,51 +451,53 @@ class AdaGraspNet(nn.Module):
 
     # ---------------------------------------------------------------- training
 
-    def forward_train(self, scene: torch.Tensor, gripper: torch.Tensor | None, k: torch.Tensor) -> torch.Tensor:
-        """Logits (B, 2, X, Y) of each sample's own rotation ``k`` (B,) int and gripper state.
+    def forward_train(self, scene: torch.Tensor, gripper: torch.Tensor | None, k) -> torch.Tensor:
+        """Logits (B, 2, X, Y) of each sample's own rotation and gripper state only.
 
         scene: (B, 2, X, Y, Z) float32 (TSDF, obstacle) on the scene grid; gripper:
-        (B, 2, gX, gY, gZ) float32 (TSDF at the executed opening, closed), ignored by scene-only.
+        (B, 2, gX, gY, gZ) float32 (TSDF at the executed opening, closed), ignored by scene-only;
+        k: (B,) int rotation indices.
         """
         self._check_scene(scene)
         b = scene.shape[0]
         k = torch.as_tensor(k).reshape(-1).long()
-        assert k.shape == (b,), (k.shape, b)
-        theta = k.to("cpu", torch.float64) * (2.0 * math.pi / self.rotations)
+        assert k.shape == (b,), (tuple(k.shape), b)
+        theta = k.cpu().double() * (2.0 * math.pi / self.rotations)
         if self.variant == "scene-only":
-            logits = self.decode(self.encode_scene(scene, theta))
-            return rotate2d(logits, -theta)
+            return self.rotate_maps(self.decode(self.encode_scene(scene, theta)), -theta)
         assert gripper is not None and gripper.shape[0] == b, "gripper: one encoding per sample expected"
         self._check_gripper(gripper)
         kernels = self.encode_gripper(gripper)
         if self.rotate_mode == "kernel":
-            feats = self.encode_scene(scene, None)
+            feats = self.encode_scene(scene)
             return self.decode(self.cross_correlate(feats, self.rotate_kernels(kernels, theta), "matched"))
         feats = self.encode_scene(scene, theta)
-        logits = self.decode(self.cross_correlate(feats, kernels, "matched"))
-        return rotate2d(logits, -theta)
+        return self.rotate_maps(self.decode(self.cross_correlate(feats, kernels, "matched")), -theta)
 
-    def forward(self, scene: torch.Tensor, gripper: torch.Tensor | None, k: torch.Tensor) -> torch.Tensor:
+    def forward(self, scene: torch.Tensor, gripper: torch.Tensor | None, k) -> torch.Tensor:
         """Same as :meth:`forward_train`."""
         return self.forward_train(scene, gripper, k)
 
     @staticmethod
-    def loss(logits: torch.Tensor, action: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+    def loss(logits: torch.Tensor, action, label) -> torch.Tensor:
         """Softmax cross-entropy of the executed action's cell (the paper's loss), mean over the batch.
 
-        logits (B, 2, X, Y); action (B, >=2) int, columns (i, j, ...); label (B,) bool/int (1 = success).
+        logits (B, 2, X, Y); action (B, >= 2) int with columns (i, j, ...); label (B,) bool/int/float,
+        1 = success.
         """
         b = logits.shape[0]
         action = torch.as_tensor(action, device=logits.device).long()
-        assert action.dim() == 2 and action.shape[0] == b and action.shape[1] >= 2, action.shape
+        assert action.dim() == 2 and action.shape[0] == b and action.shape[1] >= 2, tuple(action.shape)
         label = torch.as_tensor(label, device=logits.device).reshape(-1).long()
-        assert label.shape == (b,), label.shape
+        assert label.shape == (b,), tuple(label.shape)
         picked = logits[torch.arange(b, device=logits.device), :, action[:, 0], action[:, 1]]
         return F.cross_entropy(picked, label)
 
     # ---------------------------------------------------------------- inference
 
-    def _kernels_for(self, gripper: torch.Tensor, key: str | None) -> torch.Tensor:
+    def gripper_kernels(self, gripper: torch.Tensor, key: str | None = None) -> torch.Tensor:
+        """Kernels (S, C, K, K) of one gripper's encodings (S, 2, gX, gY, gZ), cached per
+        (key, weights_version) when ``key`` is given."""
         if key is None:
             return self.encode_gripper(gripper)
         cache_key = (key, self.weights_version, str(gripper.device))
@@ -447,106 +511,89 @@ class AdaGraspNet(nn.Module):
             self._kernels.popitem(last=False)
         return kernels
 
-    def _as_tensor(self, x, name: str) -> torch.Tensor:
-        dev = next(self.parameters()).device
+    def _input(self, x, name: str) -> torch.Tensor:
         t = torch.as_tensor(x)
         assert t.dtype == torch.float32, f"{name}: expected float32, got {t.dtype}"
-        return t.to(dev)
+        return t.to(self.device)
 
     @torch.no_grad()
     def predict(self, scene, grippers: list, keys: list[str] | None = None) -> torch.Tensor:
         """Success probabilities of every opening of every gripper at every rotation and cell.
 
         scene: (2, X, Y, Z) or (B, 2, X, Y, Z) float32 (tensor or array) on the scene grid.
-        grippers: G encodings, each (S_g, 2, gX, gY, gZ) float32 (any content for scene-only).
-        keys: optional G strings naming each encoding; their kernels are cached per
-        (key, weights_version) -- the same key must always mean the same encoding.
-        Returns float32 on the model's device: (G, S_max, R, X, Y) for a 4-D scene or B == 1,
-        (B, G, S_max, R, X, Y) for B > 1; S_max = max S_g, and the openings a gripper lacks
-        (s >= S_g) are padded with probability 0, so argmax and proportional sampling never pick them.
-        Needs eval mode.
+        grippers: G encodings, each (S_g, 2, gX, gY, gZ) float32 (only S_g is read by scene-only).
+        keys: optional G strings naming the encodings; kernels are cached per (key, weights_version),
+        so one key must always name the same encoding.
+        Returns float32 on the model's device: (G, S_max, R, X, Y) for a 4-D scene or B == 1, else
+        (B, G, S_max, R, X, Y); S_max = max S_g, and openings a gripper lacks (s >= S_g) hold
+        probability 0, so neither argmax nor proportional sampling picks them. Needs eval mode.
         """
         if self.training:
             raise RuntimeError("predict: call model.eval() first (batch norm must use its running statistics)")
-        scene = self._as_tensor(scene, "scene")
+        scene = self._input(scene, "scene")
         squeeze = scene.dim() == 4 or scene.shape[0] == 1
         if scene.dim() == 4:
             scene = scene.unsqueeze(0)
         self._check_scene(scene)
         assert len(grippers) >= 1, "grippers: expected at least one gripper encoding"
-        assert keys is None or len(keys) == len(grippers), (len(keys), len(grippers))
-        out = torch.stack([self._predict_one(scene[b : b + 1], grippers, keys) for b in range(scene.shape[0])])
-        return out[0] if squeeze else out
+        assert keys is None or len(keys) == len(grippers), "keys: one key per gripper expected"
+        counts = [int(g.shape[0]) for g in grippers]
+        kernels = None
+        if self.variant != "scene-only":
+            sets = []
+            for g, enc in enumerate(grippers):
+                enc = self._input(enc, f"grippers[{g}]")
+                self._check_gripper(enc)
+                sets.append(self.gripper_kernels(enc, None if keys is None else keys[g]))
+            kernels = torch.cat(sets)  # (N, C, K, K), N = sum of S_g
+        out = []
+        for b in range(scene.shape[0]):
+            maps = self._maps(scene[b : b + 1], kernels)  # (N or 1, R, X, Y)
+            probs = maps.new_zeros(len(grippers), max(counts), *maps.shape[1:])
+            start = 0
+            for g, cnt in enumerate(counts):
+                probs[g, :cnt] = maps if kernels is None else maps[start : start + cnt]
+                start += cnt
+            out.append(probs)
+        return out[0] if squeeze else torch.stack(out)
 
-    def _predict_one(self, scene: torch.Tensor, grippers: list, keys: list[str] | None) -> torch.Tensor:
+    def _maps(self, scene: torch.Tensor, kernels: torch.Tensor | None) -> torch.Tensor:
+        """Success probabilities (N, R, X, Y) of one scene (1, 2, X, Y, Z) for N kernels, or (1, R, X, Y)
+        for scene-only (kernels None)."""
         R = self.rotations
-        X, Y = self.scene_shape[:2]
-        counts = [int(torch.as_tensor(g).shape[0]) for g in grippers]
-        s_max = max(counts)
         thetas = torch.arange(R, dtype=torch.float64) * (2.0 * math.pi / R)
-        if self.variant == "scene-only":
-            maps = torch.cat([self._scene_only_maps(scene, thetas[r : r + self.scene_chunk]) for r in range(0, R, self.scene_chunk)])
-            probs = torch.zeros(len(grippers), s_max, R, X, Y, device=maps.device)
-            for g, n in enumerate(counts):
-                probs[g, :n] = maps.unsqueeze(0)
-            return probs
-        kernels = []
-        for g, enc in enumerate(grippers):
-            enc = self._as_tensor(enc, f"grippers[{g}]")
-            self._check_gripper(enc)
-            kernels.append(self._kernels_for(enc, None if keys is None else keys[g]))
-        kernels = torch.cat(kernels)  # (N, C, Kx, Ky), N = sum of S_g
-        n = kernels.shape[0]
-        if self.rotate_mode == "kernel":
-            maps = self._kernel_rotation_maps(scene, kernels, thetas)
-        else:
-            maps = torch.cat(
-                [self._scene_rotation_maps(scene, kernels, thetas[r : r + self.scene_chunk]) for r in range(0, R, self.scene_chunk)],
-                dim=1,
-            )  # (N, R, X, Y)
-        probs = torch.zeros(len(grippers), s_max, R, X, Y, device=maps.device)
-        start = 0
-        for g, cnt in enumerate(counts):
-            probs[g, :cnt] = maps[start : start + cnt]
-            start += cnt
-        assert start == n
-        return probs
+        if kernels is not None and self.rotate_mode == "kernel":
+            n = kernels.shape[0]
+            feats = self.encode_scene(scene)  # (1, C, Fx, Fy)
+            rotated = self.rotate_kernels(kernels.repeat(R, 1, 1, 1), thetas.repeat_interleave(n))
+            corr = self.cross_correlate(feats, rotated, "all")[0]  # (R * N, C, Lx, Ly), rotation-major
+            return self._decode_probs(corr, None).view(R, n, *self.scene_shape[:2]).transpose(0, 1)
+        chunks = []
+        for r0 in range(0, R, self.scene_chunk):
+            th = thetas[r0 : r0 + self.scene_chunk]
+            feats = self.encode_scene(scene, th)  # (r, C, Fx, Fy)
+            if kernels is None:
+                chunks.append(self._decode_probs(feats, -th).unsqueeze(0))
+                continue
+            n = kernels.shape[0]
+            corr = self.cross_correlate(feats, kernels, "all")  # (r, N, C, Lx, Ly)
+            probs = self._decode_probs(corr.flatten(0, 1), -th.repeat_interleave(n))
+            chunks.append(probs.view(len(th), n, *probs.shape[1:]).transpose(0, 1))
+        return torch.cat(chunks, dim=1)
 
     def _decode_probs(self, corr: torch.Tensor, back: torch.Tensor | None) -> torch.Tensor:
-        """Maps (M, C, Lx, Ly) -> success probabilities (M, X, Y), rotated back by ``back`` (M,) rad if given."""
+        """Maps (M, C, Lx, Ly) -> success probabilities (M, X, Y), turned back by ``back`` (M,) rad if given."""
         outs = []
         for m in range(0, corr.shape[0], self.decoder_chunk):
             logits = self.decode(corr[m : m + self.decoder_chunk])
             if back is not None:
-                logits = rotate2d(logits, back[m : m + self.decoder_chunk])
+                logits = self.rotate_maps(logits, back[m : m + self.decoder_chunk])
             outs.append(torch.softmax(logits, dim=1)[:, SUCCESS])
         return torch.cat(outs)
 
-    def _scene_rotation_maps(self, scene: torch.Tensor, kernels: torch.Tensor, thetas: torch.Tensor) -> torch.Tensor:
-        r = len(thetas)
-        feats = self.encode_scene(scene.expand(r, -1, -1, -1, -1), thetas)  # (r, C, Fx, Fy)
-        corr = self.cross_correlate(feats, kernels, "all")  # (r, N, C, Lx, Ly)
-        n = kernels.shape[0]
-        flat = corr.reshape(r * n, *corr.shape[2:])
-        probs = self._decode_probs(flat, -thetas.repeat_interleave(n))
-        return probs.view(r, n, *probs.shape[1:]).transpose(0, 1)
-
-    def _kernel_rotation_maps(self, scene: torch.Tensor, kernels: torch.Tensor, thetas: torch.Tensor) -> torch.Tensor:
-        R, n = len(thetas), kernels.shape[0]
-        feats = self.encode_scene(scene, None)  # (1, C, Fx, Fy)
-        rotated = self.rotate_kernels(kernels.repeat(R, 1, 1, 1), thetas.repeat_interleave(n))  # (R*N, C, K', K')
-        corr = self.cross_correlate(feats, rotated, "all")[0]  # (R*N, C, Lx, Ly)
-        probs = self._decode_probs(corr, None)
-        return probs.view(R, n, *probs.shape[1:]).transpose(0, 1)
-
-    def _scene_only_maps(self, scene: torch.Tensor, thetas: torch.Tensor) -> torch.Tensor:
-        r = len(thetas)
-        feats = self.encode_scene(scene.expand(r, -1, -1, -1, -1), thetas)
-        return self._decode_probs(feats, -thetas)
-
 
 def build_model(cfg: Config) -> AdaGraspNet:
-    """The network for ``cfg`` (model section plus both grids), freshly initialised from torch's RNG."""
+    """The network for ``cfg`` (model section plus both grids), initialised from torch's global RNG."""
     return AdaGraspNet(cfg.model, cfg.scene_grid, cfg.gripper_grid)
 
 

@@ -116,9 +116,11 @@ def _backend_for(shards: Sequence[Any]) -> _LocalBackend | _RayBackend:
     return _RayBackend()
 
 
-def _as_tensor(codes: np.ndarray) -> torch.Tensor:
-    """A tensor view of int8 codes (arrays from the Ray object store are read-only: copied once)."""
-    return torch.from_numpy(codes if codes.flags.writeable else codes.copy())
+def _any_nonzero(codes: np.ndarray) -> bool:
+    """Whether a contiguous int8 array has a non-zero entry (read as 8-byte words: ~8x fewer ops)."""
+    flat = codes.reshape(-1)
+    n8 = flat.size // 8 * 8
+    return bool(flat[:n8].view(np.uint64).any() or flat[n8:].any())
 
 
 # --------------------------------------------------------------------------------------
@@ -272,27 +274,39 @@ class ReplayClient:
         return got
 
     def _assemble(self, chosen, shard_of, ids, parts, balanced) -> ReplayBatch:
-        """Dequantise the read codes into (pooled) float32 tensors."""
+        """Dequantise the read codes into (pooled) float32 arrays and wrap them as tensors.
+
+        numpy, single-threaded: torch's intra-op threads stall badly on a busy 2-core machine.
+        """
         b = len(chosen)
-        scene = torch.from_numpy(self._pool.take((b, 2) + self.scene_shape, np.float32))
-        gripper = torch.from_numpy(self._pool.take((b, 2) + self.gripper_shape, np.float32))
-        s_scale = torch.from_numpy(scene_scales(self.levels)).reshape(2, 1)
+        scene = self._pool.take((b, 2) + self.scene_shape, np.float32)
+        gripper = self._pool.take((b, 2) + self.gripper_shape, np.float32)
+        s_scale = scene_scales(self.levels)
+        g_scale = np.float32(1.0 / self.levels)
+        one_scale = s_scale[0] == s_scale[1]
         action = np.empty((b, 4), np.int64)
         label = np.empty(b, np.float32)
         score = np.empty(b, np.float32)
         for i, p in enumerate(chosen):
             part = parts[int(p)]
-            scene[i].copy_(_as_tensor(part["scene"]))
-            scene[i].view(2, -1).mul_(s_scale)
-            gripper[i].copy_(_as_tensor(part["gripper"]))
+            codes = part["scene"]
+            if not _any_nonzero(codes[1]):
+                # no obstacle in the scene (single and multi scenes): a memset instead of a conversion
+                np.multiply(codes[0], s_scale[0], out=scene[i, 0])
+                scene[i, 1].fill(0.0)
+            elif one_scale:
+                np.multiply(codes, s_scale[0], out=scene[i])
+            else:
+                for c in (0, 1):
+                    np.multiply(codes[c], s_scale[c], out=scene[i, c])
+            np.multiply(part["gripper"], g_scale, out=gripper[i])
             action[i] = part["action"]
             label[i] = float(part["label"])
             score[i] = part["score"]
-        gripper.mul_(1.0 / self.levels)
         index = np.stack([shard_of[chosen], ids[chosen]], axis=1)
         return ReplayBatch(
-            scene=scene,
-            gripper=gripper,
+            scene=torch.from_numpy(scene),
+            gripper=torch.from_numpy(gripper),
             action=torch.from_numpy(action),
             label=torch.from_numpy(label),
             score=torch.from_numpy(score),

@@ -48,9 +48,9 @@ HEIGHTMAP_STEP = 5e-5
 INT8_MISSING = -128
 """Fill value of int8 volumes; never produced by the quantiser, so a missing chunk is detected."""
 INT16_MISSING = -32768
-"""Fill value of the int16 heightmap; never produced by the quantiser."""
+"""Fill value of the int16 surface array; never produced by the quantiser."""
 UINT8_MISSING = 255
-"""Fill value of uint8 flags (valid, label); never produced by the writer."""
+"""Fill value of the uint8 label; never produced by the writer."""
 
 RANGE_SLACK = 1e-3
 """Inputs may exceed their documented range by this much (float rounding) before they are rejected."""
@@ -119,10 +119,10 @@ def array_specs(
                   f"scene volumes on the scene grid (axes x, y, z, world frame); decode channel 0 as "
                   f"value / {levels} (TSDF/truncation in [-1, 1]) and channel 1 as value / {OBSTACLE_LEVELS} "
                   f"(obstacle in [0, 1])", True),
-        ArraySpec("heightmap", (c, x, y), (1, x, y), "int16", INT16_MISSING, f"{HEIGHTMAP_STEP} m",
-                  "top-surface height above the table, world frame; decode as value * step", True),
-        ArraySpec("valid", (c, x, y), (1, x, y), "uint8", UINT8_MISSING, "flag",
-                  "1 where some camera observed the column, else 0", True),
+        ArraySpec("surface", (c, 2, x, y), (1, 2, x, y), "int16", INT16_MISSING,
+                  f"channel 0: {HEIGHTMAP_STEP} m; channel 1: flag",
+                  f"channel 0: heightmap (top-surface height above the table, world frame), decode as "
+                  f"value * {HEIGHTMAP_STEP} m; channel 1: valid, 1 where some camera observed the column", True),
         ArraySpec("trial_id", (c,), (ct,), "int64", -1, "trial number",
                   "insertion number of the trial in this slot (slot = trial_id % capacity); -1 if empty"),
         ArraySpec("insert_time", (c,), (ct,), "float64", math.nan, "s (UNIX time)",
@@ -200,15 +200,17 @@ def decode_unit(codes: np.ndarray, levels: int) -> np.ndarray:
     return codes.astype(np.float32) * np.float32(1.0 / levels)
 
 
-def encode_heightmap(h: np.ndarray) -> np.ndarray:
-    """(X, Y) int16 heightmap in units of HEIGHTMAP_STEP metres."""
-    q = np.rint(h.astype(np.float64) / HEIGHTMAP_STEP)
-    return np.clip(q, -32767, 32767).astype(np.int16)
+def encode_surface(heightmap: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(2, X, Y) int16: heightmap in units of HEIGHTMAP_STEP metres (0) and the valid flag (1)."""
+    out = np.empty((2,) + heightmap.shape, np.int16)
+    out[0] = np.clip(np.rint(heightmap.astype(np.float64) / HEIGHTMAP_STEP), -32767, 32767)
+    out[1] = valid
+    return out
 
 
-def decode_heightmap(q: np.ndarray) -> np.ndarray:
-    """(..., X, Y) float32 metres from int16 codes."""
-    return (q.astype(np.float64) * HEIGHTMAP_STEP).astype(np.float32)
+def decode_surface(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) float32 heightmap in metres and (X, Y) bool valid from (2, X, Y) int16 codes."""
+    return (q[0].astype(np.float64) * HEIGHTMAP_STEP).astype(np.float32), q[1] == 1
 
 
 def max_errors(levels: int) -> dict[str, float]:
@@ -274,10 +276,8 @@ class EncodedTrial:
 
     scene: np.ndarray
     """(2, X, Y, Z) int8: TSDF codes (channel 0) and obstacle codes (channel 1)."""
-    heightmap: np.ndarray
-    """(X, Y) int16 heightmap codes (HEIGHTMAP_STEP metres)."""
-    valid: np.ndarray
-    """(X, Y) uint8, 1 where observed."""
+    surface: np.ndarray
+    """(2, X, Y) int16: heightmap codes (HEIGHTMAP_STEP metres) and valid flags (see encode_surface)."""
     gripper_key: str
     """Key of the gripper encoding (name, scale, openings)."""
     gripper: np.ndarray
@@ -324,8 +324,7 @@ def encode_trial(trial: Trial, levels: int, token: tuple[int, int]) -> EncodedTr
         raise ReplayInputError(f"{where}: gripper_key: expected a non-empty string, got {trial.gripper_key!r}")
     return EncodedTrial(
         scene=encode_scene(obs.tsdf, obs.obstacle, levels),
-        heightmap=encode_heightmap(obs.heightmap),
-        valid=obs.valid.astype(np.uint8),
+        surface=encode_surface(obs.heightmap, obs.valid),
         gripper_key=trial.gripper_key,
         gripper=quantise_unit(row, levels),
         action=tuple(int(a) for a in trial.action),

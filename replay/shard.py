@@ -64,7 +64,7 @@ from replay.schema import (
     ReplayInputError,
     ReplaySchemaError,
     array_specs,
-    decode_heightmap,
+    decode_surface,
     decode_scene,
     decode_unit,
     encode_trial,
@@ -572,8 +572,8 @@ class ReplayShard:
             raise ReplayInputError(f"{w}: levels: encoded with {rec.levels}, shard {self.path} stores {self.levels}")
         if rec.scene.shape != (2, x, y, z) or rec.scene.dtype != np.int8:
             raise ReplayInputError(f"{w}: observation.tsdf: shape {rec.scene.shape[1:]}, shard {self.path} stores {(x, y, z)}")
-        if rec.heightmap.shape != (x, y) or rec.valid.shape != (x, y):
-            raise ReplayInputError(f"{w}: observation.heightmap: shape {rec.heightmap.shape}, expected {(x, y)}")
+        if rec.surface.shape != (2, x, y) or rec.surface.dtype != np.int16:
+            raise ReplayInputError(f"{w}: observation.heightmap: shape {rec.surface.shape[1:]}, expected {(x, y)}")
         if rec.gripper.shape != (2,) + self.gripper_shape or rec.gripper.dtype != np.int8:
             raise ReplayInputError(
                 f"{w}: gripper_encoding: shape {rec.gripper.shape[1:]}, shard {self.path} stores {self.gripper_shape}"
@@ -620,8 +620,7 @@ class ReplayShard:
         arrays = self._arrays
         coros = [
             arrays["scene"].async_array.setitem(slot, rec.scene),
-            arrays["heightmap"].async_array.setitem(slot, rec.heightmap),
-            arrays["valid"].async_array.setitem(slot, rec.valid),
+            arrays["surface"].async_array.setitem(slot, rec.surface),
         ]
         coros += [self._column_write(name, slot) for name in COLUMN_NAMES]
         if new_row:
@@ -788,9 +787,9 @@ class ReplayShard:
             raise ReplayError(f"{self.path}: trial {t}: not visible (visible: {self._first}..{self._end - 1})")
         slot = t % self.capacity
         row = int(self._col["gripper_row"][slot])
-        names = ("scene", "heightmap", "valid", "gripper_table")
+        names = ("scene", "surface", "gripper_table")
         results = []
-        for nm, i in zip(names, (slot, slot, slot, row)):
+        for nm, i in zip(names, (slot, slot, row)):
             res = self._chunks[nm].read(i)
             if isinstance(res, str):
                 raise ReplayCorruptError(self._mark_corrupt(nm, t, i, res))
@@ -799,11 +798,10 @@ class ReplayShard:
             self._first, self._end = self._read_commit()
             if t < self._first:
                 raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
-        scene_q, hm_q, valid_q, grip_q = results
+        scene_q, surface_q, grip_q = results
         scene = decode_scene(scene_q, self.levels)
-        obs = Observation(
-            tsdf=scene[0], obstacle=scene[1], heightmap=decode_heightmap(hm_q), valid=valid_q.astype(bool)
-        ).validate()
+        heightmap, valid = decode_surface(surface_q)
+        obs = Observation(tsdf=scene[0], obstacle=scene[1], heightmap=heightmap, valid=valid).validate()
         col = self._col
         return StoredTrial(
             trial_id=t,

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.config import GripperGridConfig, SceneGridConfig
+from common.config import Config, GripperGridConfig, SceneGridConfig, load_config
 from common.geometry import voxel_centers
 from common.observation import Observation, Trial, TrialMeta
 
@@ -169,3 +169,28 @@ def synthetic_trial(
         score=float(rng.random()) if score is None else float(score),
         meta=meta,
     ).validate()
+
+
+def small_config(capacity: int = 16, shards: int = 1, chunk: int = 4, levels: int = 127) -> Config:
+    """The default config on a 48 x 48 x 16 scene grid and a 16 x 16 x 8 gripper grid (8 mm voxels):
+    the code paths of paper scale at a fraction of the cost, for tests."""
+    return load_config(
+        "default",
+        overrides=[
+            "scene_grid.voxel_size=0.008",
+            "gripper_grid.shape=[16, 16, 8]",
+            f"replay.capacity={capacity}",
+            f"replay.shards={shards}",
+            f"replay.chunk_trials={chunk}",
+            f"replay.tsdf_levels={levels}",
+        ],
+    )
+
+
+def numbered_trial(cfg: Config, i: int, rng: np.random.Generator | None = None, **kw) -> Trial:
+    """Trial number ``i``, rebuilt identically from ``default_rng(i)`` unless ``rng`` is given."""
+    rng = np.random.default_rng(i) if rng is None else rng
+    kw.setdefault("episode_id", i)
+    n_objects = kw.pop("n_objects", 1)
+    n_obstacles = kw.pop("n_obstacles", 0)
+    return synthetic_trial(rng, cfg.scene_grid, cfg.gripper_grid, n_objects, n_obstacles, **kw)

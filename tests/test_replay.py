@@ -27,28 +27,9 @@ from replay.schema import (
     max_errors,
 )
 from replay.shard import ReplayCorruptWarning, ReplayShard, find_shards
+from replay.synthetic import numbered_trial as make_trial
+from replay.synthetic import small_config as tiny_cfg
 from replay.synthetic import synthetic_gripper_encoding, synthetic_trial
-
-
-def tiny_cfg(capacity: int = 16, shards: int = 1, chunk: int = 4, levels: int = 127):
-    """48 x 48 x 16 scene grid, 16 x 16 x 8 gripper grid: fast, same code paths as paper scale."""
-    return load_config(
-        "default",
-        overrides=[
-            "scene_grid.voxel_size=0.008",
-            "gripper_grid.shape=[16, 16, 8]",
-            f"replay.capacity={capacity}",
-            f"replay.shards={shards}",
-            f"replay.chunk_trials={chunk}",
-            f"replay.tsdf_levels={levels}",
-        ],
-    )
-
-
-def make_trial(cfg, i: int, rng=None, **kw):
-    rng = np.random.default_rng(i) if rng is None else rng
-    kw.setdefault("episode_id", i)
-    return synthetic_trial(rng, cfg.scene_grid, cfg.gripper_grid, kw.pop("n_objects", 1), kw.pop("n_obstacles", 0), **kw)
 
 
 def tree_digest(path: Path) -> dict[str, str]:
@@ -102,7 +83,7 @@ def test_group_opens_with_plain_zarr_and_documents_itself(tmp_path):
     g = zarr.open_group(str(tmp_path / "s"), mode="r")
     attrs = g.attrs["adagrasp_replay"]
     assert attrs["schema_version"] == 1 and attrs["kind"] == "shard"
-    assert set(attrs["arrays"]) >= {"scene", "heightmap", "valid", "action", "label", "score", "meta", "gripper_table", "commit"}
+    assert set(attrs["arrays"]) >= {"scene", "surface", "action", "label", "score", "meta", "gripper_table", "commit"}
     first, end = g["commit"][:]
     assert (first, end) == (0, 1)
     levels = attrs["tsdf_levels"]
@@ -111,9 +92,12 @@ def test_group_opens_with_plain_zarr_and_documents_itself(tmp_path):
     meta = json.loads(str(g["meta"][0]))
     assert meta["episode_id"] == t.meta.episode_id and tuple(meta["openings"]) == t.meta.openings
     assert g["gripper_table_key"][g["gripper_row"][0]] == t.gripper_key
-    assert "units" in g["scene"].attrs and "description" in g["heightmap"].attrs
+    assert "units" in g["scene"].attrs and "description" in g["surface"].attrs
+    heightmap = g["surface"][0, 0] * attrs["heightmap_step_m"]
+    assert np.abs(heightmap - t.observation.heightmap).max() <= attrs["heightmap_step_m"] / 2 + 1e-7
+    assert np.array_equal(g["surface"][0, 1] == 1, t.observation.valid)
     # time-major arrays are chunked along time only
-    for name in ("scene", "heightmap", "valid", "action", "label"):
+    for name in ("scene", "surface", "action", "label"):
         a = g[name]
         assert tuple(a.chunks[1:]) == tuple(a.shape[1:]), name
 
@@ -315,7 +299,7 @@ def test_corrupt_volume_chunk_only_loses_that_trial(tmp_path):
     # a missing chunk file is reported the same way
     _chunk_file(tmp_path / "s", "scene", 4).unlink()
     reader = ReplayShard(tmp_path / "s", read_only=True)
-    with pytest.raises(ReplayCorruptError) as e:
+    with pytest.raises(ReplayCorruptError) as e, pytest.warns(ReplayCorruptWarning):
         reader.get_trial(4)
     assert "missing" in one_line(e)
 

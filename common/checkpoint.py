@@ -1,0 +1,152 @@
+"""Model checkpoints: weights, variant, resolved config, counters, optional optimiser state.
+
+One file written by ``torch.save`` (atomically: a temporary file, then a rename), readable with
+``torch.load(path, weights_only=True)``. Keys:
+
+- ``format``: ``adagrasp-scale-checkpoint/1``
+- ``model``: the network's state dict (CPU tensors)
+- ``variant``: ``model.variant`` of the config (checked against it on load)
+- ``config``: the resolved config, :func:`common.config.to_dict`
+- ``step``, ``version``: learner steps and weights version; ``epsilon``: exploration at save time or None
+- ``optimizer``: optimiser state dict or None; anything else the writer adds is kept as is
+
+Call loop::
+
+    save_checkpoint(run_dir / "checkpoints/latest.pt", model, cfg, step=1200, version=60, epsilon=0.5)
+    model, ckpt = load_checkpoint(path)             # eval mode, weights_version = ckpt.version
+    model.train(); optimizer.load_state_dict(ckpt.optimizer)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from common.config import Config, ConfigError, from_dict, to_dict
+from common.network import AdaGraspNet, NetworkConfigError, build_model
+
+FORMAT = "adagrasp-scale-checkpoint/1"
+"""Value of the ``format`` key of every checkpoint this module writes and reads."""
+_KNOWN = ("format", "model", "variant", "config", "step", "version", "epsilon", "optimizer")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, corrupt or inconsistent; the message names the file and the key."""
+
+
+@dataclass
+class Checkpoint:
+    """The contents of a checkpoint file."""
+
+    cfg: Config
+    """The resolved config the model was built from."""
+    model_state: dict
+    """Network state dict (CPU tensors)."""
+    variant: str
+    """Model variant: adagrasp | init-only | scene-only."""
+    step: int
+    """Learner steps taken when it was written."""
+    version: int
+    """Weights version (the kernel-cache key of the loaded model)."""
+    epsilon: float | None
+    """Exploration epsilon when it was written, if recorded."""
+    optimizer: dict | None
+    """Optimiser state dict, if saved."""
+    extra: dict = field(default_factory=dict)
+    """Every other key of the file (e.g. the learner's own state)."""
+
+
+def save_checkpoint(
+    path: str | Path,
+    model: AdaGraspNet,
+    cfg: Config,
+    *,
+    step: int = 0,
+    version: int = 0,
+    epsilon: float | None = None,
+    optimizer: torch.optim.Optimizer | dict | None = None,
+    extra: dict | None = None,
+) -> Path:
+    """Write a checkpoint of ``model`` (built from ``cfg``) to ``path`` atomically; returns the path."""
+    if model.variant != cfg.model.variant:
+        raise CheckpointError(f"{path}: variant: the model is {model.variant!r} but the config says {cfg.model.variant!r}")
+    extra = dict(extra or {})
+    clash = sorted(set(extra) & set(_KNOWN))
+    if clash:
+        raise CheckpointError(f"{path}: extra: keys {clash} are reserved")
+    if isinstance(optimizer, torch.optim.Optimizer):
+        optimizer = optimizer.state_dict()
+    state = {
+        "format": FORMAT,
+        "model": {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()},
+        "variant": model.variant,
+        "config": to_dict(cfg),
+        "step": int(step),
+        "version": int(version),
+        "epsilon": None if epsilon is None else float(epsilon),
+        "optimizer": optimizer,
+        **extra,
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def read_checkpoint(path: str | Path) -> Checkpoint:
+    """Read and check a checkpoint file without building the model."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint file not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises pickle, zip and runtime errors for damaged files
+        reason = " ".join(str(e).split())[:200]
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {reason})") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: format: expected a dict, got {type(state).__name__}")
+    if state.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: format: expected {FORMAT!r}, got {state.get('format')!r}")
+    for key in ("model", "variant", "config", "step", "version"):
+        if key not in state:
+            raise CheckpointError(f"{path}: {key}: missing")
+    if not isinstance(state["model"], dict):
+        raise CheckpointError(f"{path}: model: expected a state dict")
+    try:
+        cfg = from_dict(state["config"], source=f"{path}: config")
+    except ConfigError as e:
+        raise CheckpointError(str(e)) from None
+    if state["variant"] != cfg.model.variant:
+        raise CheckpointError(
+            f"{path}: variant: {state['variant']!r} does not match config model.variant {cfg.model.variant!r}"
+        )
+    return Checkpoint(
+        cfg=cfg,
+        model_state=state["model"],
+        variant=state["variant"],
+        step=int(state["step"]),
+        version=int(state["version"]),
+        epsilon=state.get("epsilon"),
+        optimizer=state.get("optimizer"),
+        extra={k: v for k, v in state.items() if k not in _KNOWN},
+    )
+
+
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tuple[AdaGraspNet, Checkpoint]:
+    """The model of a checkpoint, built from its config with its weights, in eval mode on ``device``."""
+    ckpt = read_checkpoint(path)
+    try:
+        model = build_model(ckpt.cfg)
+    except NetworkConfigError as e:
+        raise CheckpointError(f"{path}: config: {e}") from None
+    try:
+        model.set_weights(ckpt.model_state, ckpt.version)
+    except RuntimeError as e:
+        first = " ".join(str(e).split())[:200]
+        raise CheckpointError(f"{path}: model: weights do not fit the {ckpt.variant} network ({first})") from None
+    return model.to(device).eval(), ckpt

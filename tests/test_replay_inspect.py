@@ -1,0 +1,106 @@
+"""``python -m replay inspect|show|export`` on a replay root and on one shard."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+from replay.client import ReplayClient, open_local_shards
+from replay.inspect import cli
+from replay.schema import max_errors
+from replay.shard import ReplayShard
+from replay.synthetic import numbered_trial as make_trial
+from replay.synthetic import small_config as tiny_cfg
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def replay_root(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=2)
+    shards = open_local_shards(tmp_path / "replay", cfg)
+    client = ReplayClient(shards, cfg, seed=0)
+    trials = []
+    for i in range(12):
+        t = make_trial(
+            cfg, i, label=i % 3 == 0, gripper=("wsg_50" if i < 4 else "parallel_jaw"),
+            n_objects=1 if i % 2 else 5, n_obstacles=0, policy_version=i // 6,
+        )
+        trials.append(t)
+        client.insert(t)
+    for s in shards:
+        s.close()
+    return tmp_path / "replay", cfg, trials
+
+
+def test_inspect_reports_counts_rates_bytes_and_schema(replay_root, tmp_path, capsys):
+    root, cfg, trials = replay_root
+    out = tmp_path / "summary.json"
+    assert cli(["inspect", str(root), "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    s = json.loads(out.read_text())
+    assert s["trials"] == 12 and s["schema_version"] == 1 and len(s["shards"]) == 2
+    assert s["success_rate"] == pytest.approx(4 / 12)
+    assert s["by_gripper"]["wsg_50"]["trials"] == 4 and s["by_gripper"]["wsg_50"]["success_rate"] == pytest.approx(2 / 4)
+    assert s["by_gripper"]["parallel_jaw"]["trials"] == 8
+    assert s["by_scene"]["single"]["trials"] == 6 and s["by_scene"]["multi"]["trials"] == 6
+    assert set(s["by_policy_version"]) == {"0", "1"} and s["by_object_set"]["synthetic"]["trials"] == 12
+    assert s["bytes_on_disk"] > 0 and s["bytes_per_trial"] == pytest.approx(s["bytes_on_disk"] / 12)
+    assert sum(b["trials"] for b in s["insert_rate"]["bins"]) == 12
+    assert "success rate" in text and "by gripper" in text and "schema version 1" in text
+    # one shard alone
+    assert cli(["inspect", str(root / "shard_001")]) == 0
+    assert "6 of capacity 8" in capsys.readouterr().out
+
+
+def test_show_writes_a_png(replay_root, tmp_path, capsys):
+    root, _, _ = replay_root
+    png = tmp_path / "t.png"
+    assert cli(["show", str(root), "--trial", "-1", "--out", str(png)]) == 0
+    img = matplotlib.image.imread(png)
+    assert img.ndim == 3 and img.shape[0] > 300 and img.shape[1] > 900
+
+
+def test_export_matches_the_stored_trials(replay_root, tmp_path):
+    root, cfg, trials = replay_root
+    npz = tmp_path / "e.npz"
+    assert cli(["export", str(root), "--trials", "2:7", "--out", str(npz)]) == 0
+    data = np.load(npz)
+    assert data["tsdf"].shape == (5,) + cfg.scene_grid.shape and data["tsdf"].dtype == np.float32
+    by_episode = {t.meta.episode_id: t for t in trials}
+    err = max_errors(cfg.replay.tsdf_levels)
+    for b in range(5):
+        meta = json.loads(str(data["meta_json"][b]))
+        t = by_episode[meta["episode_id"]]
+        assert tuple(data["action"][b]) == t.action and bool(data["label"][b]) == t.label
+        assert np.abs(data["tsdf"][b] - t.observation.tsdf).max() <= err["tsdf"] + 1e-7
+        assert str(data["gripper_key"][b]) == t.gripper_key
+    assert list(data["position"]) == [2, 3, 4, 5, 6]
+    assert (np.diff(data["insert_time"]) >= 0).all()
+
+
+def test_errors_are_one_line_with_exit_code_2(replay_root, tmp_path, capsys):
+    root, _, _ = replay_root
+    assert cli(["show", str(root), "--trial", "99", "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--trial 99" in err and "12 trials" in err
+    assert cli(["inspect", str(tmp_path / "nowhere")]) == 2
+    assert "not a replay root or shard group" in capsys.readouterr().err
+    assert cli(["export", str(root), "--trials", "5", "--out", str(tmp_path / "x.npz")]) == 2
+    assert "expected A:B" in capsys.readouterr().err
+
+
+def test_module_entry_point(replay_root):
+    root, _, _ = replay_root
+    r = subprocess.run(
+        [sys.executable, "-m", "replay", "inspect", str(root)], capture_output=True, text=True, cwd=REPO, timeout=120
+    )
+    assert r.returncode == 0, r.stderr
+    assert "trials            12" in r.stdout
+    assert ReplayShard(root / "shard_000", read_only=True).size() == 6
