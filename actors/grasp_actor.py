@@ -115,42 +115,39 @@ class GraspActor:
         encoding = self.encoder.encode(spec, scale, openings)
         key = gripper_key(spec.name, scale, openings)
         policy = LearnedPolicy(self.model, cfg, [(key, encoding)], mode="fix-gripper", epsilon=epsilon)
-        gripper = self.sim.load_gripper(spec, scale)
+        gripper = self.sim.load_gripper(spec, scale)  # owned by the simulation, reused while unchanged
         episode_seed = int(self.rng.integers(2**31))
         report = EpisodeReport(self.actor_id, self.episode, spec.name, spec.family, cfg.sim.scene, 0, 0, self.version, 0.0)
-        try:
-            for result in run_episode(
-                self.sim, gripper, policy, openings, cfg.sim.scene, cfg.sim.objects, seed=episode_seed, rng=self.rng
-            ):
-                trial = Trial(
-                    observation=result.observation,
-                    gripper_key=key,
-                    gripper_encoding=encoding,
-                    action=result.action,
-                    label=bool(result.outcome.success),
-                    score=float(result.score),
-                    meta=TrialMeta(
-                        episode_id=self.episode,
-                        step=result.step,
-                        scene=cfg.sim.scene,
-                        object_set=cfg.sim.objects,
-                        object_ids=tuple(result.object_ids),
-                        gripper=spec.name,
-                        gripper_scale=scale,
-                        openings=openings,
-                        cameras=cfg.sim.cameras,
-                        actor_id=self.actor_id,
-                        policy_version=self.version,
-                        seed=episode_seed,
-                        wall_time=time.time(),
-                    ),
-                ).validate()
-                self.replay.insert(trial)
-                report.trials += 1
-                report.successes += int(trial.label)
-                report.trial_seconds.append(result.trial_s)
-        finally:
-            gripper.remove()
+        for result in run_episode(
+            self.sim, gripper, policy, openings, cfg.sim.scene, cfg.sim.objects, seed=episode_seed, rng=self.rng
+        ):
+            trial = Trial(
+                observation=result.observation,
+                gripper_key=key,
+                gripper_encoding=encoding,
+                action=result.action,
+                label=bool(result.outcome.success),
+                score=float(result.score),
+                meta=TrialMeta(
+                    episode_id=self.episode,
+                    step=result.step,
+                    scene=cfg.sim.scene,
+                    object_set=cfg.sim.objects,
+                    object_ids=tuple(result.object_ids),
+                    gripper=spec.name,
+                    gripper_scale=scale,
+                    openings=openings,
+                    cameras=cfg.sim.cameras,
+                    actor_id=self.actor_id,
+                    policy_version=self.version,
+                    seed=episode_seed,
+                    wall_time=time.time(),
+                ),
+            ).validate()
+            self.replay.insert(trial)
+            report.trials += 1
+            report.successes += int(trial.label)
+            report.trial_seconds.append(result.trial_s)
         self.episode += 1
         report.seconds = time.perf_counter() - t0
         return report

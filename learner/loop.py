@@ -25,7 +25,8 @@ from pathlib import Path
 import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
-from common.config import Config, to_dict
+from common.checkpoint import read_checkpoint, save_checkpoint
+from common.config import Config
 from learner.learner import Learner, epsilon_at, resolve_device
 from replay.client import ReplayClient, open_local_shards, start_remote_shards
 
@@ -59,9 +60,11 @@ class LearnerProcess:
         ckpt = checkpoint_path(self.run_dir)
         self.resumed_from = None
         if ckpt.is_file():
-            state = torch.load(ckpt, map_location="cpu", weights_only=False)
-            self.learner.load_state_dict(state["learner"])
-            self.resumed_from = int(state["learner"]["steps"])
+            c = read_checkpoint(ckpt)
+            self.learner.load_state_dict(
+                {"model": c.model_state, "optimizer": c.optimizer, "steps": c.step, "version": c.version, **c.extra["learner"]}
+            )
+            self.resumed_from = c.step
 
     def inserted(self) -> int:
         """Trials ever committed to the replay."""
@@ -101,23 +104,15 @@ class LearnerProcess:
 
     def checkpoint(self, epsilon: float, inserted: int) -> str:
         """Write RUN/checkpoints/latest.pt atomically; returns its path."""
-        path = checkpoint_path(self.run_dir)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        learner_state = self.learner.state_dict()
-        state = {
-            "format": "adagrasp-scale-checkpoint/1",
-            "model": learner_state["model"],
-            "variant": self.cfg.model.variant,
-            "config": to_dict(self.cfg),
-            "step": learner_state["steps"],
-            "version": learner_state["version"],
-            "epsilon": float(epsilon),
-            "replay": {"inserted": int(inserted), "shards": self.cfg.replay.shards},
-            "learner": learner_state,
-        }
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        os.replace(tmp, path)
+        ls = self.learner.state_dict()
+        path = save_checkpoint(
+            checkpoint_path(self.run_dir), self.learner.model, self.cfg,
+            step=ls["steps"], version=ls["version"], epsilon=epsilon, optimizer=ls["optimizer"],
+            extra={
+                "learner": {"samples": ls["samples"], "history": ls["history"], "generator": ls["generator"]},
+                "replay": {"inserted": int(inserted), "shards": self.cfg.replay.shards},
+            },
+        )
         return str(path)
 
     def history(self) -> list:
