@@ -34,6 +34,8 @@ CHECKPOINT_NAME = "latest.pt"
 """File name of the newest checkpoint inside RUN/checkpoints/."""
 LEARNER_CHUNK_STEPS = 16
 """Most learner steps per train() call, so the driver stays responsive."""
+LEARNER_IDLE_WAIT_S = 1.0
+"""A learner call with no step allowed waits this long for new trials before returning."""
 
 
 def checkpoint_path(run_dir: Path) -> Path:
@@ -70,13 +72,19 @@ class LearnerProcess:
         """Trials ever committed to the replay."""
         return total_inserted(self.replay)
 
-    def train(self, max_steps: int, publish: bool = True) -> dict:
+    def train(self, max_steps: int, publish: bool = True, idle_wait_s: float = 0.0) -> dict:
         """Up to ``max_steps`` steps as the rate limiter allows; a new weights version when due.
 
+        When no step is allowed yet, waits up to ``idle_wait_s`` for new trials before returning.
         Returns a stats dict; ``weights`` holds ``(version, [ref or state])`` when one was published.
         """
-        inserted = self.inserted()
-        steps = min(max_steps, self.learner.limiter.allowed_steps(inserted, self.learner.stats.samples))
+        deadline = time.time() + idle_wait_s
+        while True:
+            inserted = self.inserted()
+            steps = min(max_steps, self.learner.limiter.allowed_steps(inserted, self.learner.stats.samples))
+            if steps > 0 or time.time() >= deadline:
+                break
+            time.sleep(0.25)
         if steps > 0:
             self.learner.train(steps)
         s = self.learner.stats
@@ -308,23 +316,26 @@ def run_distributed(
         actor_cls.options(scheduling_strategy="SPREAD").remote(cfg, i, cfg.run.seed, shards) for i in range(n_actors)
     ]
     progress = Progress(cfg, run_dir, quiet, dashboard)
+    replay = ReplayClient(shards, cfg, seed=cfg.run.seed + 2)  # the driver's view: counts only
     stats = ray.get(learner.train.remote(0))
     version, box = stats["weights"]
     published, restarts = 1, 0
     next_episode = [0] * n_actors
     pending: dict = {}
 
+    inserted = stats["inserted"]
+
     def submit(a: int) -> None:
-        eps = epsilon_at(cfg, stats["inserted"])
+        eps = epsilon_at(cfg, inserted)
         pending[actors[a].run_episodes.remote(cfg.actor.weights_poll_episodes, eps, version, box, next_episode[a])] = a
         next_episode[a] += cfg.actor.weights_poll_episodes
 
     for a in range(n_actors):
         submit(a)
-    learner_future = learner.train.remote(LEARNER_CHUNK_STEPS)
+    learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
     t0 = last_ckpt = time.time()
     try:
-        while not _done(cfg, stats["inserted"], t0, stop):
+        while not _done(cfg, inserted, t0, stop):
             ready, _ = ray.wait(list(pending) + [learner_future], num_returns=1, timeout=1.0)
             for ref in ready:
                 if ref is learner_future:
@@ -332,7 +343,7 @@ def run_distributed(
                     if stats["weights"] is not None:
                         version, box = stats["weights"]
                         published += 1
-                    learner_future = learner.train.remote(LEARNER_CHUNK_STEPS)
+                    learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
                     continue
                 a = pending.pop(ref)
                 try:
@@ -341,9 +352,10 @@ def run_distributed(
                     restarts += 1
                     print(f"actor {a}: {type(e).__name__}; it restarts and continues", flush=True)
                 submit(a)
-            progress.tick(stats["inserted"], stats, epsilon_at(cfg, stats["inserted"]))
+            inserted = total_inserted(replay)
+            progress.tick(inserted, stats, epsilon_at(cfg, inserted))
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                ray.get(learner.checkpoint.remote(epsilon_at(cfg, stats["inserted"]), stats["inserted"]))
+                ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted))
                 last_ckpt = time.time()
     finally:
         # Let every running chunk finish its episode (no partial trials), then checkpoint.

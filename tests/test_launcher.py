@@ -1,0 +1,167 @@
+"""End to end: `python -m launcher` with real Ray actors, PyBullet, the network and the Zarr replay.
+
+The 2-actor run is part of the default suite; the fault scenarios (kill -9 of an actor, of a
+shard, and of the launcher followed by --resume) take minutes and are marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zarr
+
+from common.checkpoint import read_checkpoint
+from common.config import load_config
+from learner.run import cli
+from replay.client import ReplayClient, open_local_shards
+from replay.schema import ATTR_KEY, SCHEMA_VERSION
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _launch(run_dir: Path, *extra: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "launcher", "--actors", "2", "--config", "tiny", "--run-dir", str(run_dir), "--quiet", *extra]
+    return subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def _summary(output: str) -> dict:
+    last = [ln for ln in output.splitlines() if ln.startswith("{")][-1]
+    return json.loads(last)
+
+
+def _committed(run_dir: Path) -> int:
+    """Visible trials in the run's replay, read with plain zarr-backed shards."""
+    cfg = load_config(run_dir / "config.yaml")
+    shards = open_local_shards(run_dir / "replay", cfg, read_only=True)
+    try:
+        return ReplayClient(shards, cfg).size()
+    finally:
+        for s in shards:
+            s.close()
+
+
+def _progress_trials(run_dir: Path) -> int:
+    path = run_dir / "progress.jsonl"
+    if not path.is_file():
+        return 0
+    lines = path.read_text().splitlines()
+    return json.loads(lines[-1])["trials"] if lines else 0
+
+
+def _wait_for(predicate, timeout: float, what: str, proc: subprocess.Popen | None = None) -> None:
+    t0 = time.time()
+    while not predicate():
+        if proc is not None and proc.poll() is not None:
+            out = proc.stdout.read() if proc.stdout else ""
+            raise AssertionError(f"launcher exited early while waiting for {what}:\n{out[-3000:]}")
+        if time.time() - t0 > timeout:
+            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(1.0)
+
+
+def test_two_actor_run_collects_trains_and_publishes(tmp_path):
+    run_dir = tmp_path / "run"
+    t0 = time.time()
+    proc = _launch(run_dir, "--max-trials", "30")
+    out, _ = proc.communicate(timeout=600)
+    elapsed = time.time() - t0
+    assert proc.returncode == 0, out[-3000:]
+    summary = _summary(out)
+    assert summary["trials"] >= 30
+    assert summary["learner_steps"] > 0
+    assert summary["weights_published"] >= 2
+    assert _committed(run_dir) >= 30
+    ckpt = read_checkpoint(run_dir / "checkpoints" / "latest.pt")
+    assert ckpt.step == summary["learner_steps"] and ckpt.cfg.replay.shards == 2
+    assert (run_dir / "config.yaml").is_file() and list((run_dir / "tb").iterdir())
+    group = zarr.open_group(str(run_dir / "replay" / "shard_000"), mode="r")
+    assert group.attrs[ATTR_KEY]["schema_version"] == SCHEMA_VERSION
+    print(f"2-actor tiny run: {summary['trials']} trials in {elapsed:.1f} s")
+
+
+def test_bad_config_value_is_one_line(tmp_path, capsys):
+    rc = cli(["--actors", "0", "--config", "tiny", "--set", "learner.lr=fast", "--run-dir", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "learner.lr" in err[0]
+
+
+def test_resume_requires_existing_run(tmp_path, capsys):
+    rc = cli(["--resume", "--run-dir", str(tmp_path / "nothing")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "config.yaml" in err
+
+
+def _ray_worker_pids(name: str) -> list[int]:
+    out = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout
+    return [int(line.split()[0]) for line in out.splitlines() if f"ray::{name}" in line]
+
+
+@pytest.mark.slow
+def test_actor_kill_is_restarted_and_run_continues(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = _launch(run_dir, "--max-trials", "60")
+    try:
+        _wait_for(lambda: _progress_trials(run_dir) >= 10 and _ray_worker_pids("ActorProcess"), 400, "10 trials", proc)
+        before = _progress_trials(run_dir)
+        victim = _ray_worker_pids("ActorProcess")[0]
+        os.kill(victim, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=900)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, out[-3000:]
+    summary = _summary(out)
+    assert summary["actor_restarts"] >= 1
+    assert summary["trials"] >= 60 > before
+    assert _committed(run_dir) >= 60  # every visible trial is complete, or reading it would fail
+
+
+@pytest.mark.slow
+def test_shard_kill_keeps_committed_trials(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = _launch(run_dir, "--max-trials", "50")
+    try:
+        _wait_for(lambda: _progress_trials(run_dir) >= 10 and _ray_worker_pids("ReplayShard"), 400, "10 trials", proc)
+        committed_before = _progress_trials(run_dir)
+        os.kill(_ray_worker_pids("ReplayShard")[0], signal.SIGKILL)
+        out, _ = proc.communicate(timeout=900)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, out[-3000:]
+    assert _committed(run_dir) >= max(50, committed_before)
+
+
+@pytest.mark.slow
+def test_launcher_kill_then_resume(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = _launch(run_dir, "--max-trials", "1000", "--set", "learner.checkpoint_minutes=0.2")
+    try:
+        _wait_for(lambda: (run_dir / "checkpoints" / "latest.pt").is_file() and _progress_trials(run_dir) >= 15,
+                  600, "a checkpoint and 15 trials", proc)
+        os.killpg(proc.pid, signal.SIGKILL)  # the launcher and every Ray process it started
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    subprocess.run(["ray", "stop", "--force"], capture_output=True)
+    committed = _committed(run_dir)
+    step_before = read_checkpoint(run_dir / "checkpoints" / "latest.pt").step
+    assert committed >= 15
+    resumed = subprocess.run(
+        [sys.executable, "-m", "launcher", "--resume", "--run-dir", str(run_dir), "--actors", "2",
+         "--max-trials", str(committed + 10), "--quiet"],
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
+    )
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    summary = _summary(resumed.stdout)
+    assert summary["trials"] >= committed + 10
+    assert _committed(run_dir) >= committed + 10
+    assert read_checkpoint(run_dir / "checkpoints" / "latest.pt").step >= step_before
