@@ -1,9 +1,11 @@
 """A gripper body in one PyBullet client, moved kinematically by a fixed constraint on its base.
 
-Couplings (URDF ``<mimic>`` and declared ones; PyBullet ignores ``<mimic>``) are per-step
-position targets: a ``mimic`` coupling follows the driver's measured position, a ``target``
-coupling follows the driver's commanded target (under-actuated fingers keep closing when the
-driver is blocked). Call :meth:`BulletGripper.step` once before every ``stepSimulation``.
+Couplings (URDF ``<mimic>`` and declared ones; PyBullet ignores ``<mimic>``): a ``mimic``
+coupling is a JOINT_GEAR constraint between the driver and the coupled joint (a rigid,
+two-way linkage: a blocked follower also stops the driver); a ``target`` coupling is a
+per-step position target that follows the driver's commanded target (under-actuated and
+adaptive fingers keep closing when the driver is blocked). Call :meth:`BulletGripper.step`
+once before every ``stepSimulation``.
 
 Call loop::
 
@@ -29,6 +31,13 @@ import pybullet as p
 
 from common.geometry import Transform
 from common.gripper import GripperModel, GripperSpec, aperture_from_points, joint_positions, scaled_urdf
+
+
+CLOSE_MAX_S = 2.0
+"""Lift test: longest closing phase (s); it ends earlier once every joint has been still
+(< 0.01 m/s or rad/s) for 0.1 s."""
+GEAR_FORCE_FACTOR = 10.0
+"""Maximum force of a gear (mimic) constraint, as a multiple of the spec's coupling force."""
 
 
 class BulletGripper:
@@ -64,6 +73,20 @@ class BulletGripper:
         self._cid = p.createConstraint(self.body_id, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0],
                                        parentFramePosition=[0, 0, 0], childFramePosition=[0, 0, 2.0],
                                        physicsClientId=client)
+        self._gears: list[int] = []
+        for c in spec.couplings:
+            if c.mode == "mimic" and abs(c.multiplier) > 1e-9:
+                j = self._joint[c.joint]
+                p.setJointMotorControl2(self.body_id, j, p.VELOCITY_CONTROL, targetVelocity=0.0, force=0.0,
+                                        physicsClientId=client)
+                gear = p.createConstraint(self.body_id, self._joint[c.driver], self.body_id, j, p.JOINT_GEAR,
+                                          [0, 0, 1], [0, 0, 0], [0, 0, 0], physicsClientId=client)
+                offset = c.offset * (self.scale if c.prismatic else 1.0)
+                # PyBullet's gear holds q_driver + ratio * q_joint = target
+                p.changeConstraint(gear, gearRatio=-1.0 / c.multiplier, relativePositionTarget=-offset / c.multiplier,
+                                   maxForce=GEAR_FORCE_FACTOR * spec.coupling_force, erp=0.2, physicsClientId=client)
+                self._gears.append(gear)
+        self._geared = {c.joint for c in spec.couplings if c.mode == "mimic" and abs(c.multiplier) > 1e-9}
         self._model: GripperModel | None = None
         self.reset(Transform.from_yaw(0.0, (0.0, 0.0, 2.0)), 1.0)
 
@@ -120,6 +143,8 @@ class BulletGripper:
         measured: dict[str, float] = {}
         targets = dict(self._targets)
         for c in self.spec.couplings:
+            if c.joint in self._geared:
+                continue
             src = c.driver
             if c.mode == "mimic":
                 if src not in measured:
@@ -164,7 +189,9 @@ class BulletGripper:
         return aperture_from_points(np.concatenate(pts), self.spec.aperture_band * self.scale)
 
     def remove(self) -> None:
-        """Remove the constraint and the body from the client."""
+        """Remove the constraints and the body from the client."""
+        for gear in self._gears:
+            p.removeConstraint(gear, physicsClientId=self.client)
         p.removeConstraint(self._cid, physicsClientId=self.client)
         p.removeBody(self.body_id, physicsClientId=self.client)
 
@@ -196,7 +223,9 @@ def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: f
 
     ``shape``: box (a cube of edge ``size``) or cylinder (diameter and height ``size``), placed at
     ``offset`` (m) from the TCP axis with ``yaw`` (rad). The gripper descends (opening 1, closing
-    along world x) to the object's half height or first contact, closes, and lifts by ``lift_height``.
+    along world x) to the object's half height -- but no lower than the depth the fingers sweep
+    while closing down to 0.8 x the object's size (:meth:`GripperModel.sweep_depth`) -- or first
+    contact, closes until the joints are still, and lifts by ``lift_height``.
     """
     import pybullet_data
 
@@ -224,7 +253,7 @@ def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: f
 
         g = BulletGripper(client, spec, scale)
         start = size + 0.12 * scale
-        target = size / 2
+        target = max(size / 2, GripperModel(spec, scale).sweep_depth(min_aperture=0.8 * size) + 0.002)
         g.reset(Transform.from_yaw(0.0, (0.0, 0.0, start)), 1.0)
         for _ in range(10):
             g.step()
@@ -241,9 +270,15 @@ def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: f
         contact_z = g.tcp_pose().translation[2]
         g.move_tcp(g.tcp_pose())
         g.close()
-        for _ in range(int(0.6 / time_step)):
+        joints = [g._joint[n] for n in spec.joint_names]
+        still = 0
+        for k in range(int(CLOSE_MAX_S / time_step)):
             g.step()
             p.stepSimulation(physicsClientId=client)
+            vel = [s[1] for s in p.getJointStates(g.body_id, joints, physicsClientId=client)]
+            still = still + 1 if max(abs(v) for v in vel) < 0.01 else 0
+            if k * time_step > 0.3 and still * time_step >= 0.1:
+                break
         T = g.tcp_pose()
         steps = int(1.0 / time_step)
         for k in range(1, steps + 1):

@@ -4,6 +4,7 @@ Usage::
 
     python -m launcher rollout --scene single --objects train --gripper parallel_jaw-0 \\
         --policy heuristic --episodes 100 --seed 0 --cameras 1 --json out.json --png figs/
+    python -m launcher rollout --policy checkpoint:runs/x/latest.pt --mode fix-config --gripper wsg_50 ...
 
 Episode e runs on the scene seed ``SeedSequence([seed, e])`` (reproducible one by one). The
 candidate openings are ``grippers.eval_openings``. ``--json`` writes
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from actors.grasp import TrialResult, run_episode
-from actors.policies import make_policy
+from actors.policies import Policy, make_policy
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
 from common.config import Config, load_config
 from common.gripper import get_gripper
@@ -41,7 +42,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--objects", default=None, help="object set (default: sim.objects)")
     ap.add_argument("--gripper", required=True, help="gripper name or spec YAML")
     ap.add_argument("--scale", type=float, default=1.0, help="global gripper scale")
-    ap.add_argument("--policy", default="heuristic", help="random | heuristic")
+    ap.add_argument("--policy", default="heuristic", help="random | heuristic | checkpoint:PATH")
+    ap.add_argument(
+        "--mode", default=None, help="checkpoint policies only: fix-config | fix-gripper (default) | adagrasp"
+    )
     ap.add_argument("--episodes", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cameras", type=int, default=None, help="1 (top-down) or 2-4 (ring); default sim.cameras")
@@ -63,6 +67,19 @@ def _config(args) -> Config:
     if args.cameras is not None:
         overrides.append(f"sim.cameras={args.cameras}")
     return load_config(args.config, overrides)
+
+
+def _policy(args, cfg: Config, spec, openings: tuple[float, ...]) -> Policy:
+    """The policy of ``--policy``; a checkpoint policy gets ``--mode`` and the gripper's encoding."""
+    if not args.policy.startswith("checkpoint:"):
+        if args.mode is not None:
+            raise ValueError(f"--mode {args.mode}: only checkpoint policies take a mode, not {args.policy!r}")
+        return make_policy(args.policy, cfg)
+    from common.gripper_encoding import GripperEncoder, gripper_key
+
+    encoding = GripperEncoder(cfg.gripper_grid).encode(spec, args.scale, openings)
+    key = gripper_key(spec.name, args.scale, openings)
+    return make_policy(args.policy, cfg, mode=args.mode or "fix-gripper", grippers=[(key, encoding)])
 
 
 def draw_trial(path: Path, sim: Simulation, result: TrialResult, aperture: float, title: str) -> None:
@@ -102,8 +119,8 @@ def run(args) -> dict:
     if args.episodes < 1:
         raise ValueError(f"--episodes: expected at least 1, got {args.episodes}")
     spec = get_gripper(args.gripper)
-    policy = make_policy(args.policy, cfg)
     openings = tuple(float(o) for o in cfg.grippers.eval_openings)
+    policy = _policy(args, cfg, spec, openings)
     png_dir = Path(args.png) if args.png else None
     if png_dir is not None:
         png_dir.mkdir(parents=True, exist_ok=True)
@@ -147,9 +164,8 @@ def cli(argv: list[str]) -> int:
     t0 = time.perf_counter()
     try:
         summary = run(args)
-    except (ValueError, KeyError, SimulationError) as e:
-        message = e.args[0] if isinstance(e, KeyError) and e.args else e
-        print(f"rollout: error: {message}", file=sys.stderr)
+    except (ValueError, SimulationError) as e:
+        print(f"rollout: error: {e}", file=sys.stderr)
         return 2
     print(
         f"rollout: {summary['scene']} scene, objects {summary['objects']}, gripper {summary['gripper']}, "

@@ -140,15 +140,11 @@ class Simulation:
         self.grid = cfg.scene_grid
         self.seed = int(seed)
         self.rng = np.random.default_rng(self.seed)
-        self.client = pybullet.connect(pybullet.GUI if gui else pybullet.DIRECT)
-        if self.client < 0:
-            raise SimulationError("pybullet.connect: could not start a physics client")
         self.objects: dict[int, SceneObject] = {}
         self.gripper: BulletGripper | None = None
         self._gripper_key: tuple[str, float] | None = None
         self._object_sets: dict[str, list[ObjectModel]] = {}
         self.centre = np.array([np.mean(self.grid.x_range), np.mean(self.grid.y_range), 0.0])
-        self._build_world()
         self.cameras = scene_cameras(self.grid, cfg.sim)
         self._fuser = ObservationFuser(self.grid, self.cameras)
         self._render_args = [
@@ -160,6 +156,10 @@ class Simulation:
             )
             for k, T in self.cameras
         ]
+        self.client = pybullet.connect(pybullet.GUI if gui else pybullet.DIRECT)
+        if self.client < 0:
+            raise SimulationError("pybullet.connect: could not start a physics client")
+        self._build_world()
 
     # ---------------------------------------------------------------- world
 
@@ -209,11 +209,13 @@ class Simulation:
     # ---------------------------------------------------------------- lifecycle
 
     def close(self) -> None:
-        """Disconnect the client (idempotent)."""
-        if self.client is not None and self.client >= 0:
-            if pybullet.isConnected(physicsClientId=self.client):
-                pybullet.disconnect(physicsClientId=self.client)
+        """Disconnect the client (idempotent); every body, the gripper included, goes with it."""
+        if self.client >= 0 and pybullet.isConnected(physicsClientId=self.client):
+            pybullet.disconnect(physicsClientId=self.client)
         self.client = -1
+        self.gripper = None
+        self._gripper_key = None
+        self.objects.clear()
 
     def __enter__(self) -> "Simulation":
         return self

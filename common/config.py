@@ -196,7 +196,7 @@ class ModelConfig:
     """Physical cell size (m) where scene features and gripper kernel meet."""
     rotate: str = "scene"
     """scene (the paper: re-encode the scene once per rotation) | kernel (speed option: encode the
-    scene once and rotate the gripper kernel; scores differ, see docs/ARCHITECTURE.md)."""
+    scene once and rotate the gripper kernel; scores differ, see common/network.py)."""
     correlation: str = "fft"
     """How the cross-correlation is computed: fft (real FFTs) | grouped (one grouped convolution);
     the same sums, up to float rounding."""

@@ -8,10 +8,10 @@ Signed distance per part, evaluated only on the grid block that the part's posed
 (plus the truncation distance) covers, combined by a minimum over parts:
 
 - boxes, spheres, cylinders: exact analytic distance;
-- meshes (their convex hulls, which is what PyBullet collides): nearest of dense surface
-  samples (spacing a third of a voxel, KD-tree built once per gripper and scale, in the part
-  frame), signed by that sample's normal; beyond the truncation only the sign is computed, from
-  a coarse subsample.
+- meshes, as their convex hulls (what PyBullet collides): distance to the nearest of dense
+  surface samples (spacing a third of a voxel, KD-tree built once per gripper and scale, in the
+  part frame), signed by that sample's face normal, or by the exact convex inside test where
+  the normal is ambiguous (near edges and corners) or no sample lies within the truncation.
 
 Grid frame: the TCP frame at yaw 0 (fingers along -z, closing along x); voxel (i, j, k) has its
 centre at ``((i + 0.5 - gX / 2) v, (j + 0.5 - gY / 2) v, (k + 0.5) v - tcp_height)``.
@@ -32,12 +32,13 @@ from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from scipy.spatial import cKDTree
 
 from common.config import GripperGridConfig
 from common.gripper import GripperModel, GripperSpec, _sample_surface, cache_root
 
-ENCODING_VERSION = "1"
+ENCODING_VERSION = "2"
 """Bumped when the encoding changes, so disk caches are not reused across versions."""
 SAMPLES_PER_VOXEL = 3.0
 """Mesh surface samples per voxel edge (sample spacing = voxel_size / this)."""
@@ -81,33 +82,43 @@ class _PartField:
         if part.kind == "mesh":
             n = int(np.clip(m.area / spacing**2, 500, 400_000))
             pts, faces = _sample_surface(m, n)
-            normals = np.asarray(m.face_normals)[faces]
-            pts = np.concatenate([pts, np.asarray(m.vertices)])
-            normals = np.concatenate([normals, np.asarray(m.vertex_normals)])
-            self.tree, self.normals = cKDTree(pts), normals
-            step = max(1, len(pts) // 2000)
-            self.coarse, self.coarse_normals = cKDTree(pts[::step]), normals[::step]
+            self.tree = cKDTree(pts)
+            self.sample_normals = np.asarray(m.face_normals)[faces]
+            snap = spacing / 2
+            coarse = trimesh.convex.convex_hull(np.unique(np.round(np.asarray(m.vertices) / snap), axis=0) * snap)
+            normals = np.asarray(coarse.face_normals)
+            offsets = np.einsum("ij,ij->i", normals, np.asarray(coarse.triangles)[:, 0])
+            planes = np.unique(np.round(np.column_stack([normals, offsets]), 6), axis=0)
+            self.normals, self.offsets = planes[:, :3], planes[:, 3]
+            self.spacing = spacing
 
     def sdf(self, p: np.ndarray, bound: float) -> np.ndarray:
-        """(N,) signed distance (m) of points (N, 3) in the part frame; negative inside.
+        """(N,) signed distance (m) of points (N, 3) in the part frame, clipped to +-``bound``; negative inside.
 
-        Mesh distances are exact only up to ``bound``; farther points get +-``bound``.
+        Meshes are convex hulls. Magnitude: distance to the nearest surface sample. Sign: from that
+        sample's face normal when the offset points clearly along or against it; otherwise (and
+        for points with no sample within ``bound``) from the convex inside test (largest
+        face-plane distance, which inside is also the distance) on the hull of the vertices
+        snapped to half the sample spacing (a few hundred planes instead of thousands).
         """
         if self.kind == "box":
-            return _box_sdf(p, self.size)
+            return np.clip(_box_sdf(p, self.size), -bound, bound)
         if self.kind == "sphere":
-            return np.linalg.norm(p, axis=-1) - self.size[0]
+            return np.clip(np.linalg.norm(p, axis=-1) - self.size[0], -bound, bound)
         if self.kind == "cylinder":
-            return _cylinder_sdf(p, self.size[0], self.size[1])
+            return np.clip(_cylinder_sdf(p, self.size[0], self.size[1]), -bound, bound)
         d, idx = self.tree.query(p, k=1, distance_upper_bound=bound, eps=KD_EPS)
-        far = ~np.isfinite(d)
-        idx[far] = 0
-        sign = np.einsum("ij,ij->i", p - self.tree.data[idx], self.normals[idx])
-        if far.any():
-            _, cidx = self.coarse.query(p[far], k=1)
-            sign[far] = np.einsum("ij,ij->i", p[far] - self.coarse.data[cidx], self.coarse_normals[cidx])
-            d[far] = bound
-        return np.where(sign < 0.0, -d, d)
+        found = np.isfinite(d)
+        idx[~found] = 0
+        along = np.einsum("ij,ij->i", p - self.tree.data[idx], self.sample_normals[idx])
+        sure = found & ((np.abs(along) > 0.5 * d) | (d < self.spacing))
+        out = np.where(along < 0.0, -d, d)
+        unsure = ~sure
+        if unsure.any():
+            plane = (p[unsure] @ self.normals.T - self.offsets).max(axis=1)
+            mag = np.where(found[unsure], d[unsure], bound)
+            out[unsure] = np.where(plane <= 0.0, np.maximum(plane, -mag), mag)
+        return np.clip(out, -bound, bound)
 
 
 class _GripperField:

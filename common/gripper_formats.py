@@ -509,7 +509,6 @@ def mjcf_to_urdf(root: ET.Element, path: Path) -> ET.Element:
                 x = np.cross(z, [1, 0, 0]) if abs(z[0]) < 0.9 else np.cross(z, [0, 1, 0])
                 x /= np.linalg.norm(x)
                 R = np.stack([x, np.cross(z, x), z], axis=1)
-                T = T_link_body.copy()
                 Tl = np.eye(4)
                 Tl[:3, :3], Tl[:3, 3] = R, (p0 + p1) / 2
                 T = T_link_body @ Tl

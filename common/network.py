@@ -60,6 +60,10 @@ _TAPS_CACHE_SIZE = 256
 """Rotation sampling tables kept per model."""
 
 
+_FUSED = getattr(torch.ops.mkldnn, "_convolution_pointwise", None) if torch.backends.mkldnn.is_available() else None
+"""oneDNN convolution with a fused bias, ReLU and residual add (CPU inference only), if this torch has it."""
+
+
 class NetworkConfigError(ValueError):
     """The grids and the model config do not fit together; the message names the field."""
 
@@ -93,7 +97,16 @@ class ConvBlock(nn.Module):
         shape = (-1,) + (1,) * (self.conv.weight.dim() - 1)
         return self.conv.weight * scale.view(shape), bias
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
+        """Conv block of ``x``; with ``residual`` (same shape as the output) the sum conv + residual
+        goes through the ReLU (a residual block's tail)."""
+        if not self.training and _FUSED is not None and x.device.type == "cpu" and not torch.is_grad_enabled():
+            w, b = self._folded() if self.norm is not None else (self.conv.weight, self.conv.bias)
+            c = self.conv
+            args = (list(c.padding), list(c.stride), list(c.dilation), c.groups)
+            if residual is not None:
+                return _FUSED.binary(x, residual, w, b, *args, "add", 1.0, "relu" if self.relu else "none", [], "")
+            return _FUSED(x, w, b, *args, "relu" if self.relu else "none", [], "")
         if self.norm is not None and not self.training:
             w, b = self._folded()
             c = self.conv
@@ -102,6 +115,8 @@ class ConvBlock(nn.Module):
             y = self.conv(x)
             if self.norm is not None:
                 y = self.norm(y)
+        if residual is not None:
+            y = y + residual
         return F.relu(y, inplace=True) if self.relu else y
 
 
@@ -111,10 +126,10 @@ class ResBlock2D(nn.Module):
     def __init__(self, channels: int):
         super().__init__()
         self.conv1 = ConvBlock(2, channels, channels)
-        self.conv2 = ConvBlock(2, channels, channels, relu=False)
+        self.conv2 = ConvBlock(2, channels, channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.relu(self.conv2(self.conv1(x)) + x, inplace=True)
+        return self.conv2(self.conv1(x), residual=x)
 
 
 class Encoder(nn.Module):

@@ -10,7 +10,8 @@ y up (``imshow(map.T, origin="lower")``).
   rotation is framed in red and its best cell marked.
 - :func:`grasp_image`: the heightmap with the chosen grasp: the gripper's footprint (cells of the
   gripper TSDF below zero at the chosen opening, projected down, turned by the yaw and moved to
-  the TCP), the TCP and the closing direction.
+  the TCP; white, and orange for the part at or below the TCP), the TCP (+) and the closing
+  direction (red line).
 
 Usage::
 
@@ -79,6 +80,7 @@ def score_maps_image(
     s_best, k_best, i_best, j_best = np.unravel_index(int(np.argmax(shown)), shown.shape)
     ks = shown_rotations(k_best, R)
     ext = _extent(cfg)
+    top = max(float(heightmap.max()), 1e-3)
     half = 0.25 * min(ext[1] - ext[0], ext[3] - ext[2])
     centre = np.array([(ext[0] + ext[1]) / 2, (ext[2] + ext[3]) / 2])
     fig = Figure(figsize=(3.0 * len(ks), 2.9 * S + (0.4 if title else 0.0)), dpi=80)
@@ -86,7 +88,7 @@ def score_maps_image(
     for s in range(S):
         for col, k in enumerate(ks):
             ax = axes[s, col]
-            ax.imshow(heightmap.T, origin="lower", extent=ext, cmap="gray", interpolation="nearest")
+            ax.imshow(heightmap.T, origin="lower", extent=ext, cmap="gray", vmin=-top, vmax=top, interpolation="nearest")
             m = np.ma.masked_where(~mask, shown[s, k]) if mask is not None else shown[s, k]
             ax.imshow(m.T, origin="lower", extent=ext, cmap="jet", vmin=0.0, vmax=1.0, alpha=0.55, interpolation="nearest")
             theta = rotation_angle(k, R)
@@ -110,14 +112,19 @@ def score_maps_image(
     return _render(fig)
 
 
-def gripper_footprint(encoding: np.ndarray, cfg: Config) -> np.ndarray:
-    """(P, 2) float64 TCP-frame (x, y) metres of the gripper-grid columns with any voxel inside
-    the gripper; ``encoding``: (2, gX, gY, gZ) or (gX, gY, gZ) float32 TSDF (channel 0 used)."""
+def gripper_footprint(encoding: np.ndarray, cfg: Config, below_tcp: bool = False) -> np.ndarray:
+    """(P, 2) float64 TCP-frame (x, y) metres of the gripper-grid columns with a voxel inside the
+    gripper (only voxels at or below the TCP if ``below_tcp``: the fingertips);
+    ``encoding``: (2, gX, gY, gZ) or (gX, gY, gZ) float32 TSDF (channel 0 used)."""
     enc = np.asarray(encoding)
     vol = enc[0] if enc.ndim == 4 else enc
-    gx, gy, _ = vol.shape
-    v = cfg.gripper_grid.voxel_size
-    ii, jj = np.nonzero((vol < 0).any(axis=2))
+    gx, gy, gz = vol.shape
+    grid = cfg.gripper_grid
+    v = grid.voxel_size
+    inside = vol < 0
+    if below_tcp:
+        inside = inside & ((np.arange(gz) + 0.5) * v - grid.tcp_height <= 0)[None, None, :]
+    ii, jj = np.nonzero(inside.any(axis=2))
     return np.stack([(ii + 0.5 - gx / 2) * v, (jj + 0.5 - gy / 2) * v], axis=-1)
 
 
@@ -141,11 +148,12 @@ def grasp_image(
     rot = np.array([[c, -s], [s, c]])
     if encoding is not None:
         v = cfg.gripper_grid.voxel_size
-        for px, py in gripper_footprint(encoding, cfg):
-            corner = rot @ np.array([px - v / 2, py - v / 2]) + (x, y)
-            ax.add_patch(Rectangle(corner, v, v, angle=np.degrees(choice.yaw), color="white", alpha=0.55, lw=0))
+        for below, colour, alpha in ((False, "white", 0.35), (True, "orange", 0.8)):
+            for px, py in gripper_footprint(encoding, cfg, below_tcp=below):
+                corner = rot @ np.array([px - v / 2, py - v / 2]) + (x, y)
+                ax.add_patch(Rectangle(corner, v, v, angle=np.degrees(choice.yaw), color=colour, alpha=alpha, lw=0))
     d = rot @ np.array([0.03, 0.0])
-    ax.annotate("", xy=(x + d[0], y + d[1]), xytext=(x - d[0], y - d[1]), arrowprops=dict(arrowstyle="<->", color="red", lw=1.5))
+    ax.plot([x - d[0], x + d[0]], [y - d[1], y + d[1]], color="red", lw=1.5, marker="o", ms=3)
     ax.plot([x], [y], marker="+", color="red", ms=10, mew=2)
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])

@@ -9,7 +9,7 @@ Flow of one trial::
 
     rec = encode_trial(trial, levels=127, token=(client_id, seq))   # in the actor's process
     shard.insert_encoded(rec)                                        # in the shard's process
-    tsdf = decode_scene(rec.scene, levels)[0]                        # back to float32
+    tsdf = decode_unit(rec.tsdf, levels)                             # back to float32
 
 Errors are one line naming the path (or record) and the field: ReplaySchemaError for a group
 that does not match this schema, ReplayCorruptError for a chunk that cannot be decoded,
@@ -40,7 +40,7 @@ SHARD_NAME = "shard_{index:03d}"
 """Name of shard k's group under a replay root."""
 
 OBSTACLE_LEVELS = 127
-"""Stored obstacle value = round(obstacle * 127), int8 in [0, 127]; max error 1/254."""
+"""Stored obstacle code = round(obstacle * 127), int8 in [0, 127]; max error 1/254."""
 
 HEIGHTMAP_STEP = 5e-5
 """Heightmap unit in metres: stored int16 = round(height / 5e-5); max error 2.5e-5 m, range +-1.638 m."""
@@ -100,35 +100,38 @@ class ArraySpec:
 
 
 def array_specs(
-    capacity: int,
+    slots: int,
     table_rows: int,
     scene_shape: tuple[int, int, int],
     gripper_shape: tuple[int, int, int],
     chunk_trials: int,
     levels: int,
 ) -> list[ArraySpec]:
-    """The arrays of a shard with ``capacity`` trial slots and ``table_rows`` gripper-table rows."""
-    c, g, ct = capacity, table_rows, min(chunk_trials, capacity)
+    """The arrays of a shard with ``slots`` trial slots and ``table_rows`` gripper-table rows."""
+    c, g, ct = slots, table_rows, min(chunk_trials, slots)
     x, y, z = scene_shape
     gx, gy, gz = gripper_shape
     return [
         ArraySpec("commit", (2,), (2,), "int64", -1, "trial number",
-                  "[first, end): trials first..end-1 are visible; written last on insert, first on eviction"),
-        ArraySpec("scene", (c, 2, x, y, z), (1, 2, x, y, z), "int8", INT8_MISSING,
-                  f"channel 0: TSDF/truncation * {levels}; channel 1: obstacle * {OBSTACLE_LEVELS}",
-                  f"scene volumes on the scene grid (axes x, y, z, world frame); decode channel 0 as "
-                  f"value / {levels} (TSDF/truncation in [-1, 1]) and channel 1 as value / {OBSTACLE_LEVELS} "
-                  f"(obstacle in [0, 1])", True),
+                  "[first, end): trials first..end-1 are visible; written once per insert, after its data"),
+        ArraySpec("tsdf", (c, x, y, z), (1, x, y, z), "int8", INT8_MISSING, f"TSDF/truncation * {levels}",
+                  f"scene TSDF on the scene grid (axes x, y, z, world frame); decode as value / {levels} "
+                  f"(TSDF/truncation in [-1, 1], > 0 free space)", True),
+        ArraySpec("obstacle", (c, x, y, z), (1, x, y, z), "int8", 0, f"obstacle * {OBSTACLE_LEVELS}",
+                  f"obstacle channel on the scene grid; decode as value / {OBSTACLE_LEVELS} (in [0, 1]); a trial "
+                  f"without obstacle voxels has no chunk (reads as 0, see obstacle_voxels)", True),
         ArraySpec("surface", (c, 2, x, y), (1, 2, x, y), "int16", INT16_MISSING,
                   f"channel 0: {HEIGHTMAP_STEP} m; channel 1: flag",
                   f"channel 0: heightmap (top-surface height above the table, world frame), decode as "
                   f"value * {HEIGHTMAP_STEP} m; channel 1: valid, 1 where some camera observed the column", True),
         ArraySpec("trial_id", (c,), (ct,), "int64", -1, "trial number",
-                  "insertion number of the trial in this slot (slot = trial_id % capacity); -1 if empty"),
+                  "insertion number of the trial in this slot (slot = trial_id % slots); -1 if empty"),
         ArraySpec("insert_time", (c,), (ct,), "float64", math.nan, "s (UNIX time)",
                   "shard clock when the trial was committed"),
         ArraySpec("insert_token", (c, 2), (ct, 2), "int64", -1, "id",
                   "(client id, sequence number) of the insert request; makes retried inserts idempotent"),
+        ArraySpec("obstacle_voxels", (c,), (ct,), "int32", -1, "voxels",
+                  "number of non-zero obstacle codes of the trial (0: no obstacle chunk is stored)"),
         ArraySpec("action", (c, 4), (ct, 4), "int32", -1, "index",
                   "(i, j, k, s): scene cell along x and y, rotation index (theta = 2 pi k / R), opening index"),
         ArraySpec("gripper_row", (c,), (ct,), "int32", -1, "row",
@@ -150,7 +153,9 @@ def array_specs(
     ]
 
 
-COLUMN_NAMES = ("trial_id", "insert_time", "insert_token", "action", "gripper_row", "label", "score", "meta")
+COLUMN_NAMES = (
+    "trial_id", "insert_time", "insert_token", "obstacle_voxels", "action", "gripper_row", "label", "score", "meta",
+)
 """Per-trial columns chunked ``chunk_trials`` trials at a time; a shard keeps them in memory."""
 TABLE_COLUMN_NAMES = ("gripper_table_key", "gripper_table_opening")
 
@@ -176,23 +181,9 @@ def quantise_unit(x: np.ndarray, levels: int, lo: float = -1.0) -> np.ndarray:
     return q.astype(np.int8)
 
 
-def encode_scene(tsdf: np.ndarray, obstacle: np.ndarray, levels: int) -> np.ndarray:
-    """(2, X, Y, Z) int8 codes of the TSDF (channel 0) and the obstacle channel (channel 1)."""
-    out = np.empty((2,) + tsdf.shape, np.int8)
-    out[0] = quantise_unit(tsdf, levels)
-    out[1] = quantise_unit(obstacle, OBSTACLE_LEVELS, lo=0.0)
-    return out
-
-
 def scene_scales(levels: int) -> np.ndarray:
-    """(2,) float32 factors that turn scene codes back into TSDF and obstacle values."""
+    """(2,) float32 factors that turn TSDF codes (0) and obstacle codes (1) back into values."""
     return np.array([1.0 / levels, 1.0 / OBSTACLE_LEVELS], np.float32)
-
-
-def decode_scene(codes: np.ndarray, levels: int) -> np.ndarray:
-    """(..., 2, X, Y, Z) float32 TSDF/truncation and obstacle from int8 codes."""
-    s = scene_scales(levels).reshape((2, 1, 1, 1))
-    return codes.astype(np.float32) * s
 
 
 def decode_unit(codes: np.ndarray, levels: int) -> np.ndarray:
@@ -274,8 +265,12 @@ def meta_from_json(text: str) -> TrialMeta:
 class EncodedTrial:
     """A trial quantised for storage (about 4x smaller than the float record; cheap to ship)."""
 
-    scene: np.ndarray
-    """(2, X, Y, Z) int8: TSDF codes (channel 0) and obstacle codes (channel 1)."""
+    tsdf: np.ndarray
+    """(X, Y, Z) int8 TSDF codes (round(tsdf * levels))."""
+    obstacle: np.ndarray | None
+    """(X, Y, Z) int8 obstacle codes (round(obstacle * 127)), None when every code is 0."""
+    obstacle_voxels: int
+    """Number of non-zero obstacle codes."""
     surface: np.ndarray
     """(2, X, Y) int16: heightmap codes (HEIGHTMAP_STEP metres) and valid flags (see encode_surface)."""
     gripper_key: str
@@ -322,8 +317,12 @@ def encode_trial(trial: Trial, levels: int, token: tuple[int, int]) -> EncodedTr
         raise ReplayInputError(f"{where}: score: expected a probability in [0, 1], got {trial.score!r}")
     if not isinstance(trial.gripper_key, str) or not trial.gripper_key:
         raise ReplayInputError(f"{where}: gripper_key: expected a non-empty string, got {trial.gripper_key!r}")
+    obstacle = quantise_unit(obs.obstacle, OBSTACLE_LEVELS, lo=0.0)
+    n_obstacle = int(np.count_nonzero(obstacle))
     return EncodedTrial(
-        scene=encode_scene(obs.tsdf, obs.obstacle, levels),
+        tsdf=quantise_unit(obs.tsdf, levels),
+        obstacle=obstacle if n_obstacle else None,
+        obstacle_voxels=n_obstacle,
         surface=encode_surface(obs.heightmap, obs.valid),
         gripper_key=trial.gripper_key,
         gripper=quantise_unit(row, levels),

@@ -3,13 +3,14 @@
 Layout and decoding rules: replay/schema.py and docs/REPLAY_FORMAT.md. The group opens with
 plain ``zarr.open_group(path, mode="r")``.
 
-Commit protocol (why a crash never exposes a half-written trial): trial ``n`` goes to slot
-``n % capacity``. If that slot still holds the oldest visible trial, the shard first moves
-``commit[0]`` past it (eviction is committed *before* its slot is overwritten), then writes the
-gripper-table row (if the key is new), the volumes and the columns, and only then writes
-``commit = [first, n + 1]``. Zarr's local store writes every chunk to a temporary file and
-renames it, so a chunk is either old or new, never torn. A reader that reads a trial and then
-sees ``commit[0]`` still at or below it has read a consistent trial.
+Commit protocol (why a crash never exposes a half-written trial): the ring has ``capacity + 1``
+slots for ``capacity`` visible trials, so trial ``n`` goes to slot ``n % (capacity + 1)``, whose
+previous trial was already evicted by the commit before. The shard writes the gripper-table row
+(if the key is new), the volumes and the columns of trial ``n``, and only then one commit
+``[max(first, n + 1 - capacity), n + 1]`` that both exposes trial ``n`` and evicts the oldest.
+Chunks are written to a temporary file and renamed, so a chunk is either old or new, never torn.
+A reader that reads a trial and then sees ``commit[0]`` still at or below it has read a
+consistent trial.
 
 Gripper-table rows are reference-counted by the visible trials that use them (counts are
 rebuilt from the trial columns on open, never stored), so eviction frees a row only when no
@@ -27,22 +28,21 @@ Usage (in-process; as a Ray actor see replay.client.start_remote_shards)::
 
 from __future__ import annotations
 
-import asyncio
 import fcntl
 import heapq
 import os
 import time
+import uuid
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import google_crc32c
 import numpy as np
 import zarr
-from numcodecs import Zstd
+from numcodecs import VLenUTF8, Zstd
 from zarr.codecs import Crc32cCodec, ZstdCodec
-from zarr.core.sync import sync as zarr_sync
 
 from common.config import Config, to_dict
 from common.observation import Observation, TrialMeta
@@ -65,7 +65,6 @@ from replay.schema import (
     ReplaySchemaError,
     array_specs,
     decode_surface,
-    decode_scene,
     decode_unit,
     encode_trial,
     max_errors,
@@ -176,36 +175,53 @@ def ensure_root(root: str | Path, num_shards: int) -> Path:
     return p
 
 
-class _ChunkFiles:
-    """Reads one-trial chunks of an array straight from their files into numpy.
+class _ChunkIO:
+    """Reads and writes whole chunks of one array straight from and to their files.
 
-    Used when the array's codec chain is exactly the one this schema writes (bytes -> zstd ->
-    crc32c) on a local directory; it decodes each chunk once, into its final buffer, where
-    ``zarr.Array.__getitem__`` costs ~2 ms of copies per 5 MB chunk. Any other chain falls back
-    to zarr. Errors are returned as one-line strings: missing file, checksum, decode.
+    Zarr-python spends ~1.5 ms of CPU per chunk in its asynchronous machinery, whatever the
+    chunk's size; an insert touches ~15 chunks. When the array's codec chain is exactly the one
+    this schema creates (``bytes`` little-endian or ``vlen-utf8``, then ``zstd``, then ``crc32c``)
+    chunks are encoded here with the same codecs (numcodecs Zstd, google-crc32c) in ~0.1 ms, and
+    written like zarr's local store does: to a ``*.partial`` file, then renamed over the chunk,
+    so a chunk is always old or new, never torn. The bytes are what zarr writes (tests read them
+    back with plain zarr). For any other chain every call goes through zarr.
+
+    Reads decode a chunk once, into its final buffer; errors come back as one-line strings
+    (missing file, checksum, decode) so the caller can name the trial.
     """
 
     def __init__(self, arr: zarr.Array, array_dir: Path) -> None:
         self.arr = arr
         self.dir = array_dir
         meta = arr.metadata.to_dict()
-        names = [c["name"] for c in meta["codecs"]]
-        self.direct = names == ["bytes", "zstd", "crc32c"] and (array_dir / "zarr.json").is_file()
-        self.chunk_shape = tuple(arr.chunks[1:])
-        self.dtype = np.dtype(meta["data_type"])
+        codecs = meta["codecs"]
+        self.string = meta["data_type"] == "string"
+        first = "vlen-utf8" if self.string else "bytes"
+        little = self.string or codecs[0].get("configuration", {}).get("endian", "little") == "little"
+        self.direct = [c["name"] for c in codecs] == [first, "zstd", "crc32c"] and little and (
+            array_dir / "zarr.json"
+        ).is_file()
+        zstd_conf = codecs[1].get("configuration", {}) if len(codecs) > 1 else {}
+        self._zstd = Zstd(level=int(zstd_conf.get("level", 0)), checksum=bool(zstd_conf.get("checksum", False)))
+        self._vlen = VLenUTF8()
+        self.rows = int(arr.chunks[0])
+        self.inner = tuple(arr.chunks[1:])
+        self.dtype = None if self.string else np.dtype(meta["data_type"]).newbyteorder("<")
         self.zeros = (0,) * (len(arr.shape) - 1)
-        self._zstd = Zstd()
+
+    def key(self, chunk: int) -> str:
+        return self.arr.metadata.encode_chunk_key((chunk,) + self.zeros)
 
     def read(self, index: int, out: np.ndarray | None = None) -> np.ndarray | str:
-        """The chunk of entry ``index`` as an array of shape chunks[1:] (into ``out`` if given), or an error string."""
+        """Entry ``index`` of a one-entry-per-chunk array, shape chunks[1:] (into ``out`` if given), or an error."""
         if not self.direct:
             try:
                 out = self.arr[index]
             except Exception as e:  # noqa: BLE001
                 return _chunk_error(e)
-            # the schema's fill values are never written, so a fill value means the chunk is missing
-            return "chunk missing (fill value)" if out.flat[0] == self.arr.fill_value else out
-        key = self.arr.metadata.encode_chunk_key((index,) + self.zeros)
+            # chunks are only read where the trial stored one, and never consist of fill values only
+            return "chunk missing (fill value)" if (out == self.arr.fill_value).all() else out
+        key = self.key(index)
         try:
             raw = (self.dir / key).read_bytes()
         except FileNotFoundError:
@@ -215,16 +231,47 @@ class _ChunkFiles:
         if len(raw) < 4 or np.uint32(google_crc32c.value(raw[:-4])).tobytes() != raw[-4:]:
             return f"chunk file {key}: checksum mismatch"
         if out is None:
-            out = np.empty(self.chunk_shape, self.dtype)
+            out = np.empty(self.inner, self.dtype)
         try:
             self._zstd.decode(raw[:-4], out=out)
         except Exception as e:  # noqa: BLE001
             return f"chunk file {key}: {_chunk_error(e)}"
         return out
 
+    def write(self, chunk: int, data: np.ndarray) -> None:
+        """Replace chunk ``chunk`` (entries chunk*rows ...) with ``data`` (up to ``rows`` entries; an edge
+        chunk is padded with the fill value, as zarr stores it)."""
+        c0 = chunk * self.rows
+        if not self.direct:
+            self.arr[c0:c0 + len(data)] = data
+            return
+        if len(data) < self.rows:
+            pad = np.full((self.rows - len(data),) + self.inner, self.arr.fill_value, dtype=object if self.string else self.dtype)
+            data = np.concatenate([np.asarray(data, dtype=pad.dtype), pad])
+        if self.string:
+            payload = self._vlen.encode(np.asarray(data, dtype=object))
+        else:
+            payload = np.ascontiguousarray(data, dtype=self.dtype).tobytes()
+        body = self._zstd.encode(payload)
+        path = self.dir / self.key(chunk)
+        tmp = path.with_name(f"{path.name}.{uuid.uuid4().hex}.partial")
+        with open(tmp, "wb") as f:
+            f.write(body)
+            f.write(np.uint32(google_crc32c.value(body)).tobytes())
+        os.replace(tmp, path)
+
+    def delete(self, chunk: int) -> None:
+        """Remove a chunk: it reads as the fill value again."""
+        if not self.direct:
+            c0 = chunk * self.rows
+            self.arr[c0:c0 + self.rows] = np.full((self.rows,) + self.inner, self.arr.fill_value)
+            return
+        (self.dir / self.key(chunk)).unlink(missing_ok=True)
+
 
 class ReplayShard:
-    """The only writer of one Zarr group: a FIFO ring of ``capacity`` trials plus a gripper table.
+    """The only writer of one Zarr group: a FIFO of ``capacity`` trials (a ring of ``capacity + 1``
+    slots) plus a gripper table.
 
     ``read_only=True`` opens an existing shard for reading (any process, while a writer appends);
     :meth:`refresh` picks up new commits. Not thread-safe: one caller at a time (a Ray actor
@@ -259,9 +306,10 @@ class ReplayShard:
     def _create(self, cfg: Config, shard_index: int, num_shards: int) -> None:
         rc = cfg.replay
         capacity = shard_capacity(rc.capacity, num_shards)
+        slots = capacity + 1
         table_rows = capacity + 1
         specs = array_specs(
-            capacity, table_rows, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
+            slots, table_rows, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
         )
         self.path.mkdir(parents=True, exist_ok=True)
         group = zarr.create_group(str(self.path))
@@ -275,6 +323,8 @@ class ReplayShard:
                 fill_value=spec.fill,
                 compressors=compressors,
                 attributes=spec.attributes(),
+                # "c.17.0.0.0": one flat folder of chunk files per array, no folder chain per trial
+                chunk_key_encoding={"name": "default", "separator": "."},
             )
         group["commit"][:] = np.array([0, 0], np.int64)
         scene_grid = to_dict(cfg.scene_grid)
@@ -287,8 +337,9 @@ class ReplayShard:
             "shard_index": shard_index,
             "num_shards": num_shards,
             "capacity": capacity,
+            "slots": slots,
             "table_rows": table_rows,
-            "chunk_trials": min(rc.chunk_trials, capacity),
+            "chunk_trials": min(rc.chunk_trials, slots),
             "scene_shape": list(cfg.scene_grid.shape),
             "gripper_shape": list(cfg.gripper_grid.shape),
             "tsdf_levels": rc.tsdf_levels,
@@ -300,7 +351,7 @@ class ReplayShard:
             "scene_grid": scene_grid,
             "gripper_grid": gripper_grid,
             "created": time.time(),
-            "visibility": "trial t is visible iff commit[0] <= t < commit[1] and trial_id[t % capacity] == t",
+            "visibility": "trial t is visible iff commit[0] <= t < commit[1] and trial_id[t % slots] == t",
             "arrays": {
                 s.name: {"shape": list(s.shape), "chunks": list(s.chunks), "dtype": s.dtype, "units": s.units}
                 for s in specs
@@ -324,6 +375,7 @@ class ReplayShard:
             raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.kind: expected {SHARD_KIND!r}, got {attrs.get('kind')!r}")
         self.attrs = dict(attrs)
         self.capacity = int(attrs["capacity"])
+        self.slots = int(attrs["slots"])
         self.table_rows = int(attrs["table_rows"])
         self.chunk_trials = int(attrs["chunk_trials"])
         self.levels = int(attrs["tsdf_levels"])
@@ -344,16 +396,16 @@ class ReplayShard:
                     raise ReplaySchemaError(
                         f"{p}: attributes.{ATTR_KEY}.{key}: stored {attrs.get(key)!r}, config gives {want!r}"
                     )
+        if self.slots != self.capacity + 1:
+            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.slots: expected capacity + 1, got {self.slots}")
         specs = array_specs(
-            self.capacity, self.table_rows, self.scene_shape, self.gripper_shape, self.chunk_trials, self.levels
+            self.slots, self.table_rows, self.scene_shape, self.gripper_shape, self.chunk_trials, self.levels
         )
         self._specs = {s.name: s for s in specs}
         self._arrays: dict[str, zarr.Array] = {}
         for spec in specs:
             self._arrays[spec.name] = self._check_array(group, spec)
-        self._chunks = {
-            s.name: _ChunkFiles(self._arrays[s.name], p / s.name) for s in specs if s.per_trial_chunk
-        }
+        self._io = {s.name: _ChunkIO(self._arrays[s.name], p / s.name) for s in specs}
         if not self.read_only:
             self._take_lock()
             self._remove_partial_files()
@@ -395,9 +447,15 @@ class ReplayShard:
         self._lock_fd = fd
 
     def _remove_partial_files(self) -> None:
-        """Temporary files of writes cut off by a crash (never visible to zarr) are removed."""
-        for f in self.path.rglob("*.partial"):
-            f.unlink(missing_ok=True)
+        """Temporary files of writes cut off by a crash (never visible to zarr) are removed.
+
+        Zarr writes them next to their target: in the group folder or an array folder (flat chunk keys).
+        """
+        for folder in [self.path] + [self.path / name for name in self._specs]:
+            with os.scandir(folder) as entries:
+                for entry in entries:
+                    if entry.name.endswith(".partial") and entry.is_file():
+                        os.unlink(entry.path)
 
     def close(self) -> None:
         """Release the writer lock. The shard object must not be used afterwards."""
@@ -420,8 +478,10 @@ class ReplayShard:
     # ----------------------------------------------------------------------------------
 
     def _problem(self, message: str) -> None:
-        self._problems.append(message)
-        warnings.warn(message, ReplayCorruptWarning, stacklevel=3)
+        """Record and warn about an unreadable chunk or lost trial, once per message."""
+        if message not in self._problems:
+            self._problems.append(message)
+            warnings.warn(message, ReplayCorruptWarning, stacklevel=3)
 
     def _read_commit(self) -> tuple[int, int]:
         try:
@@ -459,15 +519,13 @@ class ReplayShard:
         return data, bad
 
     def _load_state(self) -> None:
-        c = self.capacity
+        c = self.slots
         self._first, self._end = self._read_commit()
         self._col: dict[str, np.ndarray] = {}
         bad = np.zeros(c, bool)
-        bad_reason = np.full(c, "", dtype=object)
         for name in COLUMN_NAMES:
             data, b = self._load_column(name)
             self._col[name] = data
-            bad_reason[b & ~bad] = name
             bad |= b
         self._table: dict[str, np.ndarray] = {}
         bad_rows = np.zeros(self.table_rows, bool)
@@ -490,6 +548,7 @@ class ReplayShard:
             "insert_time": np.isfinite(col["insert_time"][slots]),
             "meta": np.array([bool(m) for m in col["meta"][slots]], bool),
             "gripper_row": (col["gripper_row"][slots] >= 0) & (col["gripper_row"][slots] < self.table_rows),
+            "obstacle_voxels": col["obstacle_voxels"][slots] >= 0,
         }
         self._lost[slots[bad[slots]]] = True
         for name, ok in checks.items():
@@ -544,34 +603,24 @@ class ReplayShard:
             raise ReplayError(f"{self.path}: shard is open read-only")
 
     def _write_commit(self, first: int, end: int) -> None:
-        self._arrays["commit"][:] = np.array([first, end], np.int64)
+        self._io["commit"].write(0, np.array([first, end], np.int64))
         self._first, self._end = first, end
 
-    def _column_write(self, name: str, index: int, table: bool = False):
-        """Coroutine writing the whole chunk of column ``name`` that holds ``index``, from memory."""
-        spec = self._specs[name]
-        step = spec.chunks[0]
-        c0 = (index // step) * step
-        c1 = min(c0 + step, spec.shape[0])
-        data = (self._table if table else self._col)[name][c0:c1]
-        return self._arrays[name].async_array.setitem(slice(c0, c1), data)
-
-    @staticmethod
-    def _gather(coros: Iterable) -> list:
-        """Run zarr write/read coroutines concurrently on zarr's event loop; exceptions are returned."""
-
-        async def run() -> list:
-            return await asyncio.gather(*coros, return_exceptions=True)
-
-        return zarr_sync(run())
+    def _column_write(self, name: str, index: int, table: bool = False) -> None:
+        """Write the whole chunk of column ``name`` that holds entry ``index``, from memory."""
+        io = self._io[name]
+        chunk = index // io.rows
+        io.write(chunk, (self._table if table else self._col)[name][chunk * io.rows:(chunk + 1) * io.rows])
 
     def _check_record(self, rec: EncodedTrial) -> None:
         x, y, z = self.scene_shape
         w = rec.where
         if rec.levels != self.levels:
             raise ReplayInputError(f"{w}: levels: encoded with {rec.levels}, shard {self.path} stores {self.levels}")
-        if rec.scene.shape != (2, x, y, z) or rec.scene.dtype != np.int8:
-            raise ReplayInputError(f"{w}: observation.tsdf: shape {rec.scene.shape[1:]}, shard {self.path} stores {(x, y, z)}")
+        if rec.tsdf.shape != (x, y, z) or rec.tsdf.dtype != np.int8:
+            raise ReplayInputError(f"{w}: observation.tsdf: shape {rec.tsdf.shape}, shard {self.path} stores {(x, y, z)}")
+        if rec.obstacle is not None and (rec.obstacle.shape != (x, y, z) or rec.obstacle.dtype != np.int8):
+            raise ReplayInputError(f"{w}: observation.obstacle: shape {rec.obstacle.shape}, expected {(x, y, z)}")
         if rec.surface.shape != (2, x, y) or rec.surface.dtype != np.int16:
             raise ReplayInputError(f"{w}: observation.heightmap: shape {rec.surface.shape[1:]}, expected {(x, y)}")
         if rec.gripper.shape != (2,) + self.gripper_shape or rec.gripper.dtype != np.int8:
@@ -597,19 +646,17 @@ class ReplayShard:
         if rec.token in self._tokens and rec.token[0] >= 0:
             self._duplicates += 1
             return self._tokens[rec.token]
-        c = self.capacity
         n = self._end
-        slot = n % c
-        if n - c >= self._first:
-            self._write_commit(n - c + 1, n)
-            self._release_slot(slot, n - c)
+        slot = n % self.slots  # its previous trial, n - capacity - 1, is no longer visible
         key = (rec.gripper_key, int(rec.action[3]))
         row = self._row_of.get(key)
         new_row = row is None
         if new_row:
             row = heapq.heappop(self._free_rows)
         col = self._col
+        old_obstacle = int(col["obstacle_voxels"][slot])
         col["trial_id"][slot] = n
+        col["obstacle_voxels"][slot] = rec.obstacle_voxels
         col["insert_time"][slot] = time.time()
         col["insert_token"][slot] = rec.token
         col["action"][slot] = rec.action
@@ -617,23 +664,31 @@ class ReplayShard:
         col["label"][slot] = int(rec.label)
         col["score"][slot] = rec.score
         col["meta"][slot] = rec.meta_json
-        arrays = self._arrays
-        coros = [
-            arrays["scene"].async_array.setitem(slot, rec.scene),
-            arrays["surface"].async_array.setitem(slot, rec.surface),
-        ]
-        coros += [self._column_write(name, slot) for name in COLUMN_NAMES]
-        if new_row:
-            self._table["gripper_table_key"][row] = key[0]
-            self._table["gripper_table_opening"][row] = key[1]
-            coros.append(arrays["gripper_table"].async_array.setitem(row, rec.gripper))
-            coros += [self._column_write(name, row, table=True) for name in TABLE_COLUMN_NAMES]
-        errors = [e for e in self._gather(coros) if isinstance(e, BaseException)]
-        if errors:
+        io = self._io
+        try:
+            if new_row:
+                self._table["gripper_table_key"][row] = key[0]
+                self._table["gripper_table_opening"][row] = key[1]
+                io["gripper_table"].write(row, rec.gripper[None])
+                for name in TABLE_COLUMN_NAMES:
+                    self._column_write(name, row, table=True)
+            io["tsdf"].write(slot, rec.tsdf[None])
+            if rec.obstacle is not None:
+                io["obstacle"].write(slot, rec.obstacle[None])
+            elif old_obstacle != 0:
+                io["obstacle"].delete(slot)  # the previous trial's obstacle chunk; no chunk reads as 0
+            io["surface"].write(slot, rec.surface[None])
+            for name in COLUMN_NAMES:
+                self._column_write(name, slot)
+        except Exception as e:  # noqa: BLE001 - nothing is committed; report one line
             if new_row:
                 heapq.heappush(self._free_rows, row)
-            raise ReplayError(f"{self.path}: writing trial {n} failed ({_chunk_error(errors[0])}); nothing committed")
-        self._write_commit(self._first, n + 1)
+            raise ReplayError(f"{self.path}: writing trial {n} failed ({_chunk_error(e)}); nothing committed") from None
+        first = max(self._first, n + 1 - self.capacity)
+        evicted = range(self._first, first)
+        self._write_commit(first, n + 1)
+        for e in evicted:
+            self._release_slot(e % self.slots, e)
         self._refcount[row] += 1
         self._slot_row[slot] = row
         if new_row:
@@ -644,7 +699,7 @@ class ReplayShard:
         return n
 
     def _release_slot(self, slot: int, trial: int) -> None:
-        """Bookkeeping after the trial in ``slot`` was evicted (its commit is already written)."""
+        """Bookkeeping after ``trial`` (in ``slot``) was evicted by a written commit."""
         self._corrupt.pop(trial, None)
         row = int(self._slot_row[slot])
         self._slot_row[slot] = -1
@@ -673,15 +728,16 @@ class ReplayShard:
                 f"for trial {int(ids[bad][0])}"
             )
         live = self._live_mask(ids)
-        slots = ids[live] % self.capacity
+        slots = ids[live] % self.slots
         if not len(slots):
             return 0
         self._col["score"][slots] = sc[live]
-        step = self._specs["score"].chunks[0]
-        chunk_heads = sorted({int(s) // step * step for s in slots})
-        errors = [e for e in self._gather(self._column_write("score", h) for h in chunk_heads) if isinstance(e, BaseException)]
-        if errors:
-            raise ReplayError(f"{self.path}/score: write failed ({_chunk_error(errors[0])})")
+        step = self._io["score"].rows
+        try:
+            for head in sorted({int(s) // step * step for s in slots}):
+                self._column_write("score", head)
+        except OSError as e:
+            raise ReplayError(f"{self.path}/score: write failed ({_chunk_error(e)})") from None
         return int(live.sum())
 
     # ----------------------------------------------------------------------------------
@@ -690,7 +746,7 @@ class ReplayShard:
 
     def _live_mask(self, ids: np.ndarray) -> np.ndarray:
         """Which trial ids are visible, intact and not known to be corrupt."""
-        slots = ids % self.capacity
+        slots = ids % self.slots
         ok = (ids >= self._first) & (ids < self._end) & (self._col["trial_id"][slots] == ids) & ~self._lost[slots]
         if self._corrupt:
             ok &= ~np.isin(ids, np.fromiter(self._corrupt, np.int64))
@@ -711,7 +767,7 @@ class ReplayShard:
     def index(self) -> dict[str, np.ndarray]:
         """What a sampler needs: trial_id (n,) int64, label (n,) bool, score (n,) float32."""
         ids = self.visible_ids()
-        slots = ids % self.capacity
+        slots = ids % self.slots
         return {
             "trial_id": ids,
             "label": self._col["label"][slots] == 1,
@@ -721,7 +777,7 @@ class ReplayShard:
     def column(self, name: str, trial_ids) -> np.ndarray:
         """Values of a per-trial column (see COLUMN_NAMES) for the given visible trials."""
         ids = np.asarray(trial_ids, np.int64)
-        return self._col[name][ids % self.capacity]
+        return self._col[name][ids % self.slots]
 
     def _mark_corrupt(self, name: str, trial: int, index: int, err: str) -> str:
         """Remember an unreadable trial (warned once); returns the one-line description."""
@@ -734,32 +790,37 @@ class ReplayShard:
     def read(self, trial_ids) -> dict[str, Any]:
         """Quantised batch data of the given trials, in the given order, skipping unreadable ones.
 
-        Returns trial_id (n,) int64, scene: list of n (2, X, Y, Z) int8 codes, gripper: list of n
-        (2, gX, gY, gZ) int8 codes, action (n, 4) int64, label (n,) bool, score (n,) float32, and
-        missing: list of requested ids that were evicted or are corrupt (counted, warned once).
+        Returns trial_id (n,) int64; tsdf: list of n (X, Y, Z) int8 codes; obstacle: list of n
+        (X, Y, Z) int8 codes or None (no obstacle voxel); gripper: list of n (2, gX, gY, gZ) int8
+        codes; action (n, 4) int64; label (n,) bool; score (n,) float32; missing: requested ids
+        that were evicted or are corrupt (counted, warned once). Code arrays may be reused by
+        the shard once the caller drops them.
         """
         ids = np.asarray(trial_ids, dtype=np.int64).reshape(-1)
         live = self._live_mask(ids)
         ids_live = ids[live]
-        slots = ids_live % self.capacity
+        slots = ids_live % self.slots
         rows = self._col["gripper_row"][slots].astype(np.int64)
+        n_obstacle = self._col["obstacle_voxels"][slots]
         n = len(ids_live)
         keep = np.ones(n, bool)
-        scenes: list = [None] * n
+        tsdfs: list = [None] * n
+        obstacles: list = [None] * n
         grippers: list = [None] * n
+        shape = self.scene_shape
         for b in range(n):
-            t = int(ids_live[b])
-            scenes[b] = self._chunks["scene"].read(
-                int(slots[b]), out=self._staging.take(self._chunks["scene"].chunk_shape, np.int8)
-            )
-            if isinstance(scenes[b], str):
-                self._mark_corrupt("scene", t, int(slots[b]), scenes[b])
-                keep[b] = False
-                continue
-            grippers[b] = self._chunks["gripper_table"].read(int(rows[b]))
-            if isinstance(grippers[b], str):
-                self._mark_corrupt("gripper_table", t, int(rows[b]), grippers[b])
-                keep[b] = False
+            t, s = int(ids_live[b]), int(slots[b])
+            reads = [("tsdf", s, tsdfs, self._staging.take(shape, np.int8))]
+            if n_obstacle[b] > 0:
+                reads.append(("obstacle", s, obstacles, self._staging.take(shape, np.int8)))
+            reads.append(("gripper_table", int(rows[b]), grippers, None))
+            for name, index, dest, out in reads:
+                res = self._io[name].read(index, out=out)
+                if isinstance(res, str):
+                    self._mark_corrupt(name, t, index, res)
+                    keep[b] = False
+                    break
+                dest[b] = res
         if self.read_only:
             self._first, self._end = self._read_commit()
             keep &= ids_live >= self._first
@@ -770,7 +831,8 @@ class ReplayShard:
         missing = [int(t) for t in ids[~live]] + [int(t) for t in ids_live[~keep]]
         return {
             "trial_id": ids_live[sel],
-            "scene": [scenes[b] for b in sel],
+            "tsdf": [tsdfs[b] for b in sel],
+            "obstacle": [obstacles[b] for b in sel],
             "gripper": [grippers[b] for b in sel],
             "action": col["action"][out_slots].astype(np.int64),
             "label": col["label"][out_slots] == 1,
@@ -785,12 +847,13 @@ class ReplayShard:
             raise ReplayCorruptError(self._corrupt[t])
         if not self._live_mask(np.array([t]))[0]:
             raise ReplayError(f"{self.path}: trial {t}: not visible (visible: {self._first}..{self._end - 1})")
-        slot = t % self.capacity
+        slot = t % self.slots
         row = int(self._col["gripper_row"][slot])
-        names = ("scene", "surface", "gripper_table")
+        has_obstacle = int(self._col["obstacle_voxels"][slot]) > 0
+        names = ("tsdf", "surface", "gripper_table") + (("obstacle",) if has_obstacle else ())
         results = []
-        for nm, i in zip(names, (slot, slot, row)):
-            res = self._chunks[nm].read(i)
+        for nm, i in zip(names, (slot, slot, row, slot)):
+            res = self._io[nm].read(i)
             if isinstance(res, str):
                 raise ReplayCorruptError(self._mark_corrupt(nm, t, i, res))
             results.append(res)
@@ -798,10 +861,15 @@ class ReplayShard:
             self._first, self._end = self._read_commit()
             if t < self._first:
                 raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
-        scene_q, surface_q, grip_q = results
-        scene = decode_scene(scene_q, self.levels)
+        tsdf_q, surface_q, grip_q = results[:3]
+        if has_obstacle:
+            obstacle = decode_unit(results[3], OBSTACLE_LEVELS)
+        else:
+            obstacle = np.zeros(self.scene_shape, np.float32)
         heightmap, valid = decode_surface(surface_q)
-        obs = Observation(tsdf=scene[0], obstacle=scene[1], heightmap=heightmap, valid=valid).validate()
+        obs = Observation(
+            tsdf=decode_unit(tsdf_q, self.levels), obstacle=obstacle, heightmap=heightmap, valid=valid
+        ).validate()
         col = self._col
         return StoredTrial(
             trial_id=t,
@@ -836,7 +904,7 @@ class ReplayShard:
             "visible": int(len(idx["trial_id"])),
             "successes": int(idx["label"].sum()),
             "failures": int((~idx["label"]).sum()),
-            "lost": int(self._lost[ids % self.capacity].sum()) if len(ids) else 0,
+            "lost": int(self._lost[ids % self.slots].sum()) if len(ids) else 0,
             "corrupt": len(self._corrupt),
             "corrupt_skipped": self._corrupt_skipped,
             "duplicates_skipped": self._duplicates,
@@ -850,9 +918,10 @@ class ReplayShard:
 
 
 def disk_usage(path: str | Path) -> tuple[int, int]:
-    """(apparent bytes, allocated bytes) of all files under ``path``."""
+    """(apparent bytes of all files, allocated bytes of all files and folders) under ``path``."""
     apparent = allocated = 0
     for root, _, files in os.walk(path):
+        allocated += os.stat(root).st_blocks * 512
         for f in files:
             st = os.stat(os.path.join(root, f))
             apparent += st.st_size

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pybullet as p
 import pytest
@@ -69,7 +71,8 @@ def test_encoding_matches_tsdf_fused_from_rendered_depth(name):
     vals = _per_view_distances(spec, 0.6, grid)
     enc = encode_gripper(spec, 1.0, 0.6, grid)[0].astype(np.float64) * grid.truncation
     vox = grid.voxel_size
-    with np.errstate(invalid="ignore"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         ref = np.nanmin(np.where(vals >= 0, vals, np.nan), axis=0)
         seen_free = np.nanmax(vals, axis=0)
     surface = np.isfinite(ref) & (ref < vox / 2)
@@ -83,7 +86,7 @@ def test_encoding_matches_tsdf_fused_from_rendered_depth(name):
     assert np.mean(seen_free[inside] <= vox) >= 0.99
 
 
-@pytest.mark.parametrize("name", ["panda_hand", "g1_three_finger"])
+@pytest.mark.parametrize("name", ["panda_hand", "pr2_gripper", pytest.param("g1_three_finger", marks=pytest.mark.slow)])
 def test_mesh_distance_close_to_exact_signed_distance(name):
     """Nearest-sample distances against trimesh's exact signed distance to the same hulls."""
     grid = GripperGridConfig()
@@ -99,17 +102,19 @@ def test_mesh_distance_close_to_exact_signed_distance(name):
     err = np.abs(got[band] - exact)
     assert np.median(err) < 1e-3
     assert np.percentile(err, 99) < 0.5 * grid.voxel_size
-    assert np.mean(np.sign(got[band]) == np.sign(exact)) > 0.995
+    assert np.mean((np.sign(got[band]) == np.sign(exact)) | (np.abs(exact) < 1e-3)) > 0.995
 
 
 def test_primitive_encoding_is_exact_for_a_box_finger():
     """A parallel jaw's pad face sits exactly where the kinematics put it."""
     grid = GripperGridConfig()
-    spec = get_gripper("parallel_jaw-2")
+    spec = get_gripper("parallel_jaw-0")
+    assert spec.params["pad_shape"] == "flat"
     enc = encode_gripper(spec, 1.0, 1.0, grid)[0] * grid.truncation
     pts = grid_points(grid)
     half_gap = GripperModel(spec).aperture(1.0) / 2
-    centre_line = (np.abs(pts[..., 1]) < grid.voxel_size) & (np.abs(pts[..., 2] + 0.005) < grid.voxel_size)
+    k = int(np.argmin(np.abs(pts[0, 0, :, 2])))
+    centre_line = (np.abs(pts[..., 1]) < grid.voxel_size) & (np.arange(grid.shape[2]) == k)
     between = centre_line & (np.abs(pts[..., 0]) < half_gap)
     assert np.allclose(enc[between], half_gap - np.abs(pts[..., 0][between]), atol=1e-5)
 

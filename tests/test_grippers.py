@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -326,3 +327,80 @@ def test_scale_scales_geometry():
     b = GripperModel(spec, 1.2).mesh(0.7).extents
     assert np.allclose(b, 1.2 * a, rtol=1e-6)
     assert math.isclose(GripperModel(spec, 1.2).aperture(1.0), 1.2 * GripperModel(spec, 1.0).aperture(1.0), rel_tol=1e-2)
+
+
+# ------------------------------------------------------------------ CLI
+
+
+def test_cli_list_json(capsys):
+    from actors.gripper_cli import cli
+
+    assert cli(["list", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    test_rows = [r for r in rows if r["split"] == "test"]
+    assert {r["name"] for r in test_rows} == set(REAL)
+    families = {r["description"].split()[0] for r in rows if r["split"] == "train"}
+    assert families == set(FAMILY_NAMES)
+    for r in rows:
+        assert r["aperture_max_m"] > r["aperture_min_m"] and r["drive_joints"] >= 1
+
+
+def test_cli_check_passes_and_writes_png_and_json(tmp_path, capsys):
+    from actors.gripper_cli import cli
+
+    rc = cli(["check", "parallel_jaw-0", "--out", str(tmp_path), "--json", str(tmp_path / "r.json")])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "PASS" in out
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["passed"] and report["lift"]["box"]["success"] and report["lift"]["cylinder"]["success"]
+    assert np.all(np.diff(report["apertures_sim"]) > -1e-3)
+    assert (tmp_path / "parallel_jaw-0_encoding.png").stat().st_size > 10_000
+
+
+def test_cli_check_bad_spec_is_one_line(tmp_path, capsys):
+    from actors.gripper_cli import cli
+
+    data = _base(tmp_path)
+    data["couplings"] = [{"joint": "finger_right_joint", "driver": "ghost_joint"}]
+    f = _write(tmp_path, data)
+    assert cli(["check", str(f)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(f) in err and "couplings[0].driver" in err
+
+
+def test_cli_check_reports_fingers_that_do_not_move(tmp_path, capsys):
+    from actors.gripper_cli import cli
+
+    data = _base(tmp_path)
+    data["drive_joints"][0]["open"] = data["drive_joints"][0]["closed"] + 0.001
+    f = _write(tmp_path, data)
+    assert cli(["check", str(f)]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL" in out and "drive_joints[0].open" in out and "does not move the fingers" in out
+
+
+def test_cli_generate_reports_pass_rate(capsys):
+    from actors.gripper_cli import cli
+
+    assert cli(["generate", "--count", "8", "--no-physics", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["generated"] == 8 and 0 <= summary["pass_rate"] <= 1
+    assert set(summary["per_family"]) == set(FAMILY_NAMES)
+
+
+@pytest.mark.slow
+def test_parallel_jaw_lifts_across_scales_and_seeds():
+    spec = get_gripper("parallel_jaw-0")
+    ok = [lift_test(spec, s, "box", 0.04, offset=(0.005 * (i % 3 - 1), 0.004), yaw=0.2 * i).success
+          for i, s in enumerate((0.8, 0.9, 1.0, 1.1, 1.2))]
+    assert all(ok), ok
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", REAL)
+def test_real_grippers_pass_the_full_check(name):
+    from actors.gripper_cli import check_gripper
+
+    r = check_gripper(get_gripper(name))
+    assert r.passed, r.reasons

@@ -296,3 +296,71 @@ def test_bad_grids_raise_one_line_errors():
     cfg, model = small_model()
     with pytest.raises(AssertionError, match="scene"):
         model.predict(torch.zeros(1, 2, 8, 8, 8), [random_gripper(cfg, 1, 0)])
+
+
+def test_checkpoint_round_trip_keeps_weights_variant_and_config(tmp_path):
+    from common.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
+
+    cfg, model = small_model("model.variant=init-only", "model.rotations=8", "learner.lr=0.001", seed=4)
+    model.train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
+    scene = random_scene(cfg, 0)
+    logits = model.forward_train(scene, random_gripper(cfg, 1, 0), torch.tensor([2]))
+    model.loss(logits, torch.tensor([[5, 6, 2, 0]]), torch.tensor([1])).backward()
+    optimizer.step()  # weights and batch-norm statistics now differ from the initialisation
+    model.eval()
+    path = save_checkpoint(tmp_path / "ck" / "latest.pt", model, cfg, step=17, version=5, epsilon=0.4,
+                           optimizer=optimizer, extra={"note": "x"})
+    loaded, ckpt = load_checkpoint(path)
+    assert ckpt.variant == "init-only" and loaded.variant == "init-only"
+    assert ckpt.cfg == cfg and ckpt.step == 17 and ckpt.version == 5 and ckpt.epsilon == 0.4
+    assert ckpt.extra == {"note": "x"} and loaded.weights_version == 5 and not loaded.training
+    ref, got = model.state_dict(), loaded.state_dict()
+    assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
+    fresh = torch.optim.Adam(loaded.parameters(), lr=cfg.learner.lr)
+    fresh.load_state_dict(ckpt.optimizer)
+    gripper = random_gripper(cfg, 2, 1)
+    assert torch.equal(model.predict(scene, [gripper]), loaded.predict(scene, [gripper]))
+    # damaged or inconsistent files: one line naming the file and the key, nothing half-written
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    for target, needle in ((bad, "not a readable checkpoint"), (tmp_path / "none.pt", "not found")):
+        with pytest.raises(CheckpointError, match=needle) as e:
+            read_checkpoint(target)
+        assert "\n" not in str(e.value) and str(target) in str(e.value)
+    state = torch.load(path, weights_only=True)
+    state["variant"] = "adagrasp"
+    torch.save(state, tmp_path / "mismatch.pt")
+    with pytest.raises(CheckpointError, match="variant"):
+        read_checkpoint(tmp_path / "mismatch.pt")
+    state["variant"] = "init-only"
+    state["config"]["model"]["rotations"] = 0
+    torch.save(state, tmp_path / "badcfg.pt")
+    with pytest.raises(CheckpointError, match="model.rotations"):
+        read_checkpoint(tmp_path / "badcfg.pt")
+    state["config"]["model"]["rotations"] = 8
+    del state["model"]["dec_out.weight"]
+    torch.save(state, tmp_path / "partial.pt")
+    with pytest.raises(CheckpointError, match="model: weights do not fit"):
+        load_checkpoint(tmp_path / "partial.pt")
+    assert sorted(p.name for p in (tmp_path / "ck").iterdir()) == ["latest.pt"]
+
+
+def test_fused_inference_kernels_match_the_plain_path(monkeypatch):
+    """CPU inference fuses bias, ReLU and residual adds into oneDNN convolutions; the plain path
+    (batch norm folded, separate ReLU) gives the same probabilities."""
+    import common.network as network
+
+    if network._FUSED is None:
+        pytest.skip("this torch build has no fused oneDNN convolution")
+    cfg, model = small_model("model.rotations=4")
+    scene = random_scene(cfg, 2)
+    gripper = random_gripper(cfg, 2, 3)
+    fused = model.predict(scene, [gripper])
+    monkeypatch.setattr(network, "_FUSED", None)
+    plain = model.predict(scene, [gripper])
+    assert float((fused - plain).abs().max()) <= 1e-5
+    # and the training path (batch statistics) is untouched: train-mode forward needs gradients
+    model.train()
+    logits = model.forward_train(scene, gripper[:1], torch.tensor([1]))
+    assert logits.requires_grad

@@ -23,6 +23,7 @@ SMALL = [
     "gripper_grid.shape=[16, 16, 8]",
     "sim.action_half_extent=0.048",
     "model.rotations=8",
+    "model.min_surface_height=0.0",
 ]
 
 

@@ -13,7 +13,6 @@ import pytest
 import torch
 import zarr
 
-from common.config import load_config
 from replay.client import ReplayClient, open_local_shards
 from replay.sampler import BufferPool, draw_balanced, rank_probabilities
 from replay.schema import (
@@ -75,29 +74,40 @@ def test_round_trip_exact_meta_and_bounded_volume_error(tmp_path):
 
 
 def test_group_opens_with_plain_zarr_and_documents_itself(tmp_path):
-    cfg = tiny_cfg()
+    cfg = tiny_cfg(capacity=6, chunk=4)  # the second column chunk is an edge chunk (slots 4..5)
     shard = ReplayShard(tmp_path / "s", cfg)
-    t = make_trial(cfg, 0)
-    shard.insert(t)
+    trials = [make_trial(cfg, i) for i in range(6)]
+    trials[5].meta = dataclasses.replace(trials[5].meta, object_ids=("ycb/025_mug", "set/ü ✓"))
+    for t in trials:
+        shard.insert(t)
+    shard.update_scores([5], [0.125])
     shard.close()
     g = zarr.open_group(str(tmp_path / "s"), mode="r")
     attrs = g.attrs["adagrasp_replay"]
     assert attrs["schema_version"] == 1 and attrs["kind"] == "shard"
-    assert set(attrs["arrays"]) >= {"scene", "surface", "action", "label", "score", "meta", "gripper_table", "commit"}
-    first, end = g["commit"][:]
-    assert (first, end) == (0, 1)
+    assert set(attrs["arrays"]) >= {
+        "tsdf", "obstacle", "surface", "action", "label", "score", "meta", "gripper_table", "commit",
+    }
+    assert tuple(g["commit"][:]) == (0, 6)
     levels = attrs["tsdf_levels"]
-    tsdf = g["scene"][0, 0].astype(np.float32) / levels
-    assert np.abs(tsdf - t.observation.tsdf).max() <= 0.5 / levels + 1e-7
-    meta = json.loads(str(g["meta"][0]))
-    assert meta["episode_id"] == t.meta.episode_id and tuple(meta["openings"]) == t.meta.openings
-    assert g["gripper_table_key"][g["gripper_row"][0]] == t.gripper_key
-    assert "units" in g["scene"].attrs and "description" in g["surface"].attrs
-    heightmap = g["surface"][0, 0] * attrs["heightmap_step_m"]
-    assert np.abs(heightmap - t.observation.heightmap).max() <= attrs["heightmap_step_m"] / 2 + 1e-7
-    assert np.array_equal(g["surface"][0, 1] == 1, t.observation.valid)
+    for n, t in enumerate(trials):
+        tsdf = g["tsdf"][n].astype(np.float32) / levels
+        assert np.abs(tsdf - t.observation.tsdf).max() <= 0.5 / levels + 1e-7
+        heightmap = g["surface"][n, 0] * attrs["heightmap_step_m"]
+        assert np.abs(heightmap - t.observation.heightmap).max() <= attrs["heightmap_step_m"] / 2 + 1e-7
+        assert np.array_equal(g["surface"][n, 1] == 1, t.observation.valid)
+        assert g["obstacle_voxels"][n] == 0 and not g["obstacle"][n].any()  # no obstacle: no chunk, reads 0
+        meta = json.loads(str(g["meta"][n]))
+        assert meta["episode_id"] == t.meta.episode_id and tuple(meta["object_ids"]) == t.meta.object_ids
+        assert tuple(g["action"][n]) == t.action and g["label"][n] == int(t.label) and g["trial_id"][n] == n
+        assert g["score"][n] == (0.125 if n == 5 else t.score)
+        row = int(g["gripper_row"][n])
+        assert g["gripper_table_key"][row] == t.gripper_key and g["gripper_table_opening"][row] == t.action[3]
+        enc = g["gripper_table"][row].astype(np.float32) / levels
+        assert np.abs(enc - t.gripper_encoding[t.action[3]]).max() <= 0.5 / levels + 1e-7
+    assert "units" in g["tsdf"].attrs and "description" in g["surface"].attrs
     # time-major arrays are chunked along time only
-    for name in ("scene", "surface", "action", "label"):
+    for name in ("tsdf", "obstacle", "surface", "action", "label"):
         a = g[name]
         assert tuple(a.chunks[1:]) == tuple(a.shape[1:]), name
 
@@ -118,6 +128,23 @@ def test_fifo_order_single_shard(tmp_path):
     assert again.visible_ids().tolist() == list(range(9, 15))
     assert again.insert(make_trial(cfg, 15)) == 15
     assert again.visible_ids().tolist() == list(range(10, 16))
+
+
+def test_obstacle_chunk_only_where_there_is_an_obstacle(tmp_path):
+    cfg = tiny_cfg(capacity=2, chunk=2)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    with_obstacle = make_trial(cfg, 0, n_objects=2, n_obstacles=2)
+    assert with_obstacle.observation.obstacle.any()
+    shard.insert(with_obstacle)
+    shard.insert(make_trial(cfg, 1))
+    assert _chunk_file(tmp_path / "s", "obstacle", 0).exists() and not _chunk_file(tmp_path / "s", "obstacle", 1).exists()
+    got = shard.get_trial(0)
+    assert np.abs(got.observation.obstacle - with_obstacle.observation.obstacle).max() <= 1 / 254 + 1e-7
+    shard.insert(make_trial(cfg, 2))  # reuses slot 0: the old obstacle chunk must go
+    assert not _chunk_file(tmp_path / "s", "obstacle", 0).exists()
+    assert not shard.get_trial(2).observation.obstacle.any()
+    g = zarr.open_group(str(tmp_path / "s"), mode="r")
+    assert not g["obstacle"][0].any() and int(g["obstacle_voxels"][0]) == 0
 
 
 def test_fifo_across_shards_keeps_the_newest(tmp_path):
@@ -144,23 +171,35 @@ def test_gripper_table_stored_once_and_refcounted(tmp_path):
         t.action = t.action[:3] + (1,)
         shard.insert(t)
     assert shard.stats()["table_rows_used"] == 1
-    rows = shard.column("gripper_row", shard.visible_ids())
-    assert len(set(rows.tolist())) == 1
-    # new keys evict the old episode trial by trial; the shared row survives until its last user goes
-    for n in range(4, 9):
-        shard.insert(make_trial(cfg, n, rng))
-        users_left = sum(1 for t in shard.visible_ids() if t < 4)
-        assert (shard.stats()["table_rows_used"]) == len(shard.visible_ids()) - users_left + (1 if users_left else 0)
-        for t in shard.visible_ids():
-            got = shard.get_trial(int(t))
-            assert got.gripper_encoding.shape == (2, 16, 16, 8)
-    row_of_old = int(rows[0])
-    assert shard._refcount[row_of_old] == 0 or any(t < 4 for t in shard.visible_ids())
+    shared = int(shard.column("gripper_row", [0])[0])
+    old_key = shard.get_trial(0).gripper_key
+    assert set(shard.column("gripper_row", shard.visible_ids()).tolist()) == {shared}
+    # trials with new keys evict the episode one trial at a time; its row lives while one of them is visible
+    inserted = {}
+    for n in range(4, 10):
+        inserted[n] = make_trial(cfg, n, rng)
+        shard.insert(inserted[n])
+        visible = shard.visible_ids()
+        users = int((visible < 4).sum())
+        assert shard.stats()["table_rows_used"] == (len(visible) - users) + (1 if users else 0)
+        if users:
+            assert shard._refcount[shared] == users and shard._table["gripper_table_key"][shared] == old_key
+        else:  # freed once its last user left, then free for (and here taken by) a later key
+            assert (old_key, 1) not in shard._row_of
+        for t in visible:
+            assert shard.get_trial(int(t)).gripper_encoding.shape == (2, 16, 16, 8)
+    assert shard._table["gripper_table_key"][shared] != old_key  # the freed row was reused
+    # after eviction and row reuse every trial still reads its own encoding
+    for t in shard.visible_ids():
+        got, want = shard.get_trial(int(t)), inserted[int(t)]
+        assert got.gripper_key == want.gripper_key
+        assert np.abs(got.gripper_encoding - want.gripper_encoding[want.action[3]]).max() <= 1 / 254 + 1e-7
     shard.close()
     again = ReplayShard(tmp_path / "s", cfg)
     assert again.stats()["table_rows_used"] == len(again.visible_ids())
     for t in again.visible_ids():
-        assert again.get_trial(int(t)).gripper_key == again._table["gripper_table_key"][again.column("gripper_row", [t])[0]]
+        row = again.column("gripper_row", [t])[0]
+        assert again.get_trial(int(t)).gripper_key == again._table["gripper_table_key"][row]
 
 
 def test_duplicate_token_is_stored_once(tmp_path):
@@ -276,7 +315,7 @@ def test_corrupt_volume_chunk_only_loses_that_trial(tmp_path):
     shard = ReplayShard(tmp_path / "s", cfg)
     for i in range(6):
         shard.insert(make_trial(cfg, i, label=bool(i % 2)))
-    f = _chunk_file(tmp_path / "s", "scene", 3)
+    f = _chunk_file(tmp_path / "s", "tsdf", 3)
     raw = bytearray(f.read_bytes())
     raw[len(raw) // 2] ^= 0xFF
     f.write_bytes(bytes(raw))
@@ -292,12 +331,12 @@ def test_corrupt_volume_chunk_only_loses_that_trial(tmp_path):
     with pytest.raises(ReplayCorruptError) as e:
         shard.get_trial(3)
     msg = one_line(e)
-    assert f"{tmp_path / 's'}/scene" in msg and "trial 3" in msg and "checksum" in msg
+    assert f"{tmp_path / 's'}/tsdf" in msg and "trial 3" in msg and "checksum" in msg
     for n in (0, 1, 2, 4, 5):
         assert shard.get_trial(n).meta.episode_id == n
     assert tree_digest(tmp_path / "s") == before  # nothing rewritten by reading
     # a missing chunk file is reported the same way
-    _chunk_file(tmp_path / "s", "scene", 4).unlink()
+    _chunk_file(tmp_path / "s", "tsdf", 4).unlink()
     reader = ReplayShard(tmp_path / "s", read_only=True)
     with pytest.raises(ReplayCorruptError) as e, pytest.warns(ReplayCorruptWarning):
         reader.get_trial(4)
@@ -440,14 +479,14 @@ def test_client_refuses_mixed_or_mismatched_shards(tmp_path):
         ReplayClient([s1, object()], cfg)
 
 
-def test_env_has_no_partial_files_after_reopen(tmp_path):
+def test_writer_removes_partial_files_of_cut_off_writes(tmp_path):
     cfg = tiny_cfg()
     shard = ReplayShard(tmp_path / "s", cfg)
     shard.insert(make_trial(cfg, 0))
     shard.close()
-    stray = tmp_path / "s" / "scene" / "c" / "1.0123abcd.partial"
-    stray.parent.mkdir(parents=True, exist_ok=True)
-    stray.write_bytes(b"half")
+    strays = [tmp_path / "s" / "tsdf" / "c.1.0.0.0123abcd.partial", tmp_path / "s" / "zarr.0123abcd.partial"]
+    for stray in strays:
+        stray.write_bytes(b"half")
     ReplayShard(tmp_path / "s", cfg).close()
-    assert not stray.exists()
-    assert os.listdir(tmp_path / "s")
+    assert not any(stray.exists() for stray in strays)
+    assert sorted(os.listdir(tmp_path / "s" / "tsdf")) == ["c.0.0.0.0", "zarr.json"]

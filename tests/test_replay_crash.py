@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from replay.schema import ReplayError, max_errors
 from replay.shard import ReplayShard
@@ -25,7 +24,7 @@ from replay.synthetic import small_config as tiny_cfg
 REPO = Path(__file__).resolve().parents[1]
 
 WRITER = r"""
-import json, sys, time
+import sys, time
 from replay.shard import ReplayShard
 from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
@@ -168,9 +167,9 @@ def test_reader_opens_while_writer_appends(tmp_path):
                 assert got.action == want.action
                 seen.add(got.trial_id)
             data = reader.read(reader.visible_ids())
-            for t, codes in zip(data["trial_id"], data["scene"]):
+            for t, codes in zip(data["trial_id"], data["tsdf"]):
                 want = make_trial(cfg, int(t))
-                assert np.abs(codes[0] / cfg.replay.tsdf_levels - want.observation.tsdf).max() <= err["tsdf"] + 1e-7
+                assert np.abs(codes / cfg.replay.tsdf_levels - want.observation.tsdf).max() <= err["tsdf"] + 1e-7
         assert len(seen) > 8, "the reader saw the writer move on"
         assert reader.problems() == []
     finally:

@@ -133,7 +133,7 @@ def test_parked_gripper_is_not_seen(default_cfg):
 
 def test_unknown_object_set_fails_in_one_line(default_cfg):
     with Simulation(default_cfg, seed=0) as sim:
-        with pytest.raises(Exception) as info:
+        with pytest.raises(ObjectSetError) as info:
             sim.reset_scene("single", "no_such_set")
         assert "no_such_set" in _one_line(info.value)
 

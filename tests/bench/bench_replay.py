@@ -13,7 +13,9 @@ Keys (medians; seconds or bytes):
   reported as ``group_overhead_bytes``); ``..._allocated`` counts filesystem blocks instead.
 - ``insert_s``: one in-process insert at paper scale (quantise + compress + write + commit).
 - ``sample_b8_{paper,default}_s``: one batch of 8 (index, rank draw, read from disk, decode,
-  float32 tensors) from 2 shards of 64 trials; the OS page cache is warm.
+  float32 tensors) from 2 shards of 64 trials; the OS page cache is warm. ``..._cpu_s`` is the
+  process CPU time of the same call (what it costs when the machine is not oversubscribed;
+  ``loadavg_1min`` says how busy the machine was).
 - ``inserts_per_s_4w2s``: 4 Ray writer tasks inserting default-scale trials into 2 shard
   actors (bounded in-flight requests, every insert flushed).
 - ``tsdf_max_abs_error`` (truncation units) and ``tsdf_max_abs_error_mm``: measured round-trip
@@ -27,17 +29,21 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import dataclasses
 import json
+import os
 import shutil
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
+import sys
+
 import numpy as np
 
-from actors.simulation import Simulation
 from common.config import Config, load_config
 from common.gripper import list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
@@ -47,8 +53,25 @@ from replay.schema import encode_trial
 from replay.shard import ReplayShard, disk_usage
 
 
+@contextlib.contextmanager
+def _stdout_fd_silenced():
+    """pybullet prints a build banner from C when imported; keep this script's stdout to one JSON line."""
+    sys.stdout.flush()
+    saved, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    try:
+        yield
+    finally:
+        ctypes.CDLL(None).fflush(None)
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
 def collect(cfg: Config, kind: str, count: int, seed: int) -> list[Trial]:
     """``count`` trials, each on a fresh ``kind`` scene with a fresh gripper, scale and openings."""
+    with _stdout_fd_silenced():
+        from actors.simulation import Simulation
     rng = np.random.default_rng(seed)
     specs = list_grippers(split="train")
     encoder = GripperEncoder(cfg.gripper_grid, disk=False)
@@ -99,8 +122,8 @@ def bytes_per_trial(cfg: Config, trials: list[Trial], where: Path) -> dict:
     }
 
 
-def sample_time(cfg: Config, trials: list[Trial], where: Path, samples: int, seed: int) -> float:
-    """Median time of one batch of 8 from 2 in-process shards holding 64 trials."""
+def sample_time(cfg: Config, trials: list[Trial], where: Path, samples: int, seed: int) -> tuple[float, float]:
+    """Median wall time and median process CPU time of one batch of 8 from 2 in-process shards of 64 trials."""
     cfg = dataclasses.replace(cfg, replay=dataclasses.replace(cfg.replay, shards=2, capacity=128))
     shards = open_local_shards(where, cfg)
     client = ReplayClient(shards, cfg, seed=seed)
@@ -110,15 +133,16 @@ def sample_time(cfg: Config, trials: list[Trial], where: Path, samples: int, see
         client.insert(dataclasses.replace(t, label=bool(rng.random() < 0.3), score=float(rng.random()),
                                           meta=dataclasses.replace(t.meta, episode_id=n)))
     client.flush()
-    times = []
+    times, cpu = [], []
     for _ in range(samples + 2):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         batch = client.sample(8)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
         del batch
     for s in shards:
         s.close()
-    return statistics.median(times[2:])
+    return statistics.median(times[2:]), statistics.median(cpu[2:])
 
 
 def ray_throughput(cfg: Config, trials: list[Trial], where: Path, per_writer: int) -> float:
@@ -175,8 +199,9 @@ def main() -> None:
                     out["tsdf_max_abs_error"] = max(out.get("tsdf_max_abs_error", 0.0), res["tsdf_err"])
                     out["group_overhead_bytes"] = res["overhead"]
                 kinds[label] = trials
-            out[f"sample_b8_{scale}_s"] = sample_time(cfg, kinds["1obj"] + kinds["5obj"], tmp / f"{scale}_sample",
-                                                      args.samples, seed=3)
+            wall, cpu = sample_time(cfg, kinds["1obj"] + kinds["5obj"], tmp / f"{scale}_sample", args.samples, seed=3)
+            out[f"sample_b8_{scale}_s"] = wall
+            out[f"sample_b8_{scale}_cpu_s"] = cpu
             if scale == "default" and not args.skip_ray:
                 out["inserts_per_s_4w2s"] = ray_throughput(cfg, kinds["1obj"] + kinds["5obj"], tmp / "ray",
                                                            args.per_writer)
@@ -193,6 +218,7 @@ def main() -> None:
         out["insert_encode_s"] = statistics.median(encode_t)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    out["loadavg_1min"] = os.getloadavg()[0]
     print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()}))
 
 

@@ -1,0 +1,683 @@
+"""``python -m launcher evaluate``: the paper's evaluation protocol (Table I) for one cell, and the table.
+
+Usage::
+
+    python -m launcher evaluate --checkpoint runs/x/checkpoints/latest.pt --scene multi --objects test \\
+        --grippers test --policy fix-gripper --cameras 1 --episodes 100 --actors 2 --seed 0 \\
+        --json results/multi-te-te-fix-gripper.json --md results/multi-te-te-fix-gripper.md
+    python -m launcher evaluate --scene single --objects test --grippers wsg_50,panda_hand \\
+        --policy heuristic --episodes 100 --json results/single-te-te-heuristic.json
+    python -m launcher evaluate table results/*.json --md results/table1.md
+
+Protocol (docs/EVALUATION.md has the whole text):
+
+- Episode e uses the scene seed ``actors.rollout.episode_seed(S, e)`` =
+  ``SeedSequence([S, e]).generate_state(1)[0]`` for root seed S (``--seed``), whatever the policy,
+  gripper, scene kind, object set or number of actors; its policy generator is
+  ``numpy.random.default_rng([S, e, 1])``. Every (gripper, episode) runs in a fresh
+  :class:`actors.simulation.Simulation`, so its outcome does not depend on what ran before it
+  in the same process: results are identical for any ``--actors``.
+- One attempt = one grasp; it succeeds when exactly one target ends above ``sim.lift_height``
+  and no obstacle does (``actors.grasp.execute_grasp``). An episode ends when no target is left
+  or after ``sim.multi_max_attempts`` (multi) / ``sim.obstacle_max_attempts`` (obstacle) / 1
+  (single) attempts. Success rate = successes / attempts.
+- Policies: ``scene-only`` and ``init-only`` need a checkpoint of that variant and run in
+  fix-gripper mode; ``fix-config`` (a random opening per attempt), ``fix-gripper`` (best opening) and
+  ``adagrasp`` (best gripper of ``--grippers`` and best opening, per attempt; the chosen gripper
+  is loaded into the simulation) need an ``adagrasp`` checkpoint; ``random`` and ``heuristic``
+  need none. Candidate openings: ``grippers.eval_openings``. The evaluation config (``--config``,
+  ``--set``) fixes the simulation for every policy; a checkpoint brings its network and weights,
+  and its grids and rotations must match that config.
+- Every gripper of ``--grippers`` runs the same N episodes (except ``adagrasp``, which runs N
+  episodes and picks among them); the headline rate is the mean of the per-gripper rates
+  (``adagrasp``: its successes / attempts).
+
+Call loop (the parts are built once; :func:`run_units` decides where they run)::
+
+    plan = plan_from_argv(argv)                  # config, grippers, encodings, weights; validated
+    results = run_units(plan, plan.units(), actors=K)   # EvalWorker here (K=1) or on K Ray actors
+    summary = summarise(plan, results, argv, "test")    # per gripper, average, every episode
+    markdown = table_markdown([("out.json", summary)])  # the paper's Table I layout
+
+Bad input ends with one line on stderr and exit status 2; nothing is written then.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from actors.grasp import execute_grasp, max_attempts
+from actors.objects import ObjectSetError, object_names
+from actors.policies import make_policy
+from actors.rollout import episode_seed
+from actors.simulation import SCENE_KINDS, Simulation, SimulationError
+from common.checkpoint import read_checkpoint
+from common.config import Config, load_config, to_dict
+from common.gripper import SPLITS as GRIPPER_SPLITS
+from common.gripper import GripperSpec, get_gripper, list_grippers
+from common.gripper_encoding import GripperEncoder, gripper_key
+from common.network import build_model
+from common.policy import LearnedPolicy
+
+FORMAT = "adagrasp-scale-evaluation/1"
+"""Value of the ``format`` key of every result JSON."""
+LEARNED = {
+    "scene-only": ("scene-only", "fix-gripper"),
+    "init-only": ("init-only", "fix-gripper"),
+    "fix-config": ("adagrasp", "fix-config"),
+    "fix-gripper": ("adagrasp", "fix-gripper"),
+    "adagrasp": ("adagrasp", "adagrasp"),
+}
+"""Learned evaluation policy -> (the checkpoint's required ``model.variant``, LearnedPolicy mode)."""
+SCRIPTED = ("random", "heuristic")
+"""Reference policies that need no checkpoint."""
+POLICIES = (*LEARNED, *SCRIPTED)
+"""Every ``--policy``, in the row order of the paper's table (reference rows last)."""
+POLICY_STREAM = 1
+"""Third entropy word of the policy generator ``default_rng([seed, episode, POLICY_STREAM])``."""
+CELL_ORDER = ("O_tr/G_tr", "O_tr/G_te", "O_te/G_tr", "O_te/G_te")
+"""Object x gripper cells of the paper's table, in its column order."""
+
+
+class EvaluationError(ValueError):
+    """Bad evaluation input (policy, checkpoint, grippers, result file); one line naming the field."""
+
+
+def policy_seed(seed: int, episode: int) -> list[int]:
+    """Entropy of the policy generator of episode ``episode`` (shared by every gripper and policy)."""
+    return [int(seed), int(episode), POLICY_STREAM]
+
+
+# --------------------------------------------------------------------------------------
+# Plan: everything the workers need, validated in the driver
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One episode to run: index into the result list, episode number, gripper index (None: adagrasp)."""
+
+    index: int
+    episode: int
+    gripper: int | None
+
+
+@dataclass
+class EvalPlan:
+    """One evaluation cell: config, policy, grippers, weights; sent as is to every worker."""
+
+    cfg: Config
+    """Evaluation config (sim, grids, ``grippers.eval_openings``, ``sim.cameras``)."""
+    policy: str
+    """One of :data:`POLICIES`."""
+    scene: str
+    """Scene kind."""
+    objects: str
+    """Object set name."""
+    gripper_ids: list[str]
+    """How each gripper is found (``get_gripper`` argument: name or spec path)."""
+    gripper_names: list[str]
+    """Registered name of each gripper (``GripperSpec.name``)."""
+    scale: float
+    """Global gripper scale."""
+    openings: tuple[float, ...]
+    """Candidate initial openings in [0, 1]."""
+    episodes: int
+    """Episodes per gripper (adagrasp: in all)."""
+    seed: int
+    """Root seed S of the scene and policy seeds."""
+    model_cfg: Config | None = None
+    """Config the checkpoint's network was built from (learned policies)."""
+    model_state: dict | None = None
+    """Network state dict, CPU tensors (learned policies)."""
+    model_version: int = -1
+    """Weights version of the checkpoint."""
+    encodings: list[np.ndarray] | None = None
+    """Per gripper (S, 2, gX, gY, gZ) float32 encodings at ``scale`` and ``openings`` (learned policies)."""
+    device: str = "cpu"
+    """Torch device of the network in every worker: cpu | cuda."""
+
+    def units(self) -> list[Unit]:
+        """Every episode of the cell: gripper-major for per-gripper policies, episode order for adagrasp."""
+        if self.policy == "adagrasp":
+            return [Unit(e, e, None) for e in range(self.episodes)]
+        return [
+            Unit(g * self.episodes + e, e, g) for g in range(len(self.gripper_ids)) for e in range(self.episodes)
+        ]
+
+
+def resolve_grippers(selection: str) -> list[tuple[str, GripperSpec]]:
+    """``train`` | ``test`` | ``NAME,NAME,...`` -> [(identifier, spec)]; raises one line on unknown names."""
+    if selection in GRIPPER_SPLITS:
+        specs = list_grippers(split=selection)
+        found = [(s.name, s) for s in specs]
+    else:
+        names = [n.strip() for n in selection.split(",")]
+        if not all(names):
+            raise EvaluationError(f"--grippers {selection!r}: empty gripper name in the list")
+        found = [(n, get_gripper(n)) for n in names]
+    if not found:
+        raise EvaluationError(f"--grippers {selection!r}: selects no gripper")
+    seen: dict[str, str] = {}
+    for ident, spec in found:
+        if spec.name in seen:
+            raise EvaluationError(
+                f"--grippers {selection!r}: gripper {spec.name} given twice ({seen[spec.name]}, {ident})"
+            )
+        seen[spec.name] = ident
+    return found
+
+
+def _config(args) -> Config:
+    overrides = list(args.set) + [
+        f"sim.scene={args.scene}",
+        f"sim.objects={args.objects}",
+        f"sim.cameras={args.cameras}",
+    ]
+    return load_config(args.config, overrides)
+
+
+def make_plan(args) -> EvalPlan:
+    """Validate ``args`` (parsed CLI) and gather what the workers need; raises one-line errors."""
+    if args.episodes < 1:
+        raise EvaluationError(f"--episodes: expected at least 1, got {args.episodes}")
+    if args.actors < 1:
+        raise EvaluationError(f"--actors: expected at least 1, got {args.actors}")
+    cfg = _config(args)
+    if not object_names(args.objects):
+        raise ObjectSetError(f"--objects {args.objects}: the object set is empty")
+    grippers = resolve_grippers(args.grippers)
+    openings = tuple(float(o) for o in cfg.grippers.eval_openings)
+    plan = EvalPlan(
+        cfg=cfg,
+        policy=args.policy,
+        scene=args.scene,
+        objects=args.objects,
+        gripper_ids=[ident for ident, _ in grippers],
+        gripper_names=[spec.name for _, spec in grippers],
+        scale=float(args.scale),
+        openings=openings,
+        episodes=int(args.episodes),
+        seed=int(args.seed),
+        device=args.device,
+    )
+    if args.policy in SCRIPTED:
+        if args.checkpoint is not None:
+            raise EvaluationError(f"--checkpoint: the {args.policy} policy takes no checkpoint")
+        return plan
+    if args.checkpoint is None:
+        raise EvaluationError(f"--checkpoint: the {args.policy} policy needs a checkpoint")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise EvaluationError("--device cuda: torch sees no CUDA device on this machine")
+    variant, mode = LEARNED[args.policy]
+    ckpt = read_checkpoint(args.checkpoint)
+    if ckpt.variant != variant:
+        hint = ckpt.variant if ckpt.variant != "adagrasp" else "fix-config, fix-gripper or adagrasp"
+        raise EvaluationError(
+            f"{args.checkpoint}: model.variant: --policy {args.policy} needs a checkpoint of variant {variant}, "
+            f"this one is {ckpt.variant} (use --policy {hint})"
+        )
+    LearnedPolicy.from_checkpoint(args.checkpoint, cfg, mode=mode)  # grid and rotation checks, one line
+    encoder = GripperEncoder(cfg.gripper_grid)
+    plan.encodings = [encoder.encode(spec, plan.scale, openings) for _, spec in grippers]
+    plan.model_cfg = ckpt.cfg
+    plan.model_state = ckpt.model_state
+    plan.model_version = ckpt.version
+    return plan
+
+
+# --------------------------------------------------------------------------------------
+# Worker: runs units; the same class in this process and in Ray actors
+# --------------------------------------------------------------------------------------
+
+
+class EvalWorker:
+    """Runs evaluation episodes of one plan; one model copy, grippers and policies built on demand."""
+
+    def __init__(self, plan: EvalPlan, torch_threads: int | None = None) -> None:
+        """``torch_threads``: set torch's intra-op threads (Ray actors; the driver sets its own)."""
+        if torch_threads is not None:
+            torch.set_num_threads(int(torch_threads))
+        self.plan = plan
+        self._specs: dict[int, GripperSpec] = {}
+        self._policies: dict[int | None, object] = {}
+        self.model = None
+        if plan.model_state is not None:
+            self.model = build_model(plan.model_cfg)
+            self.model.set_weights(plan.model_state, plan.model_version)
+            self.model.to(plan.device).eval()
+
+    def spec(self, g: int) -> GripperSpec:
+        """Spec of gripper ``g`` of the plan."""
+        if g not in self._specs:
+            self._specs[g] = get_gripper(self.plan.gripper_ids[g])
+        return self._specs[g]
+
+    def policy(self, g: int | None):
+        """The policy of gripper ``g`` (None: the adagrasp policy over every gripper)."""
+        if g not in self._policies:
+            plan = self.plan
+            if plan.policy in SCRIPTED:
+                self._policies[g] = make_policy(plan.policy, plan.cfg)
+            else:
+                indices = range(len(plan.gripper_ids)) if g is None else [g]
+                grippers = [
+                    (gripper_key(plan.gripper_names[n], plan.scale, plan.openings), plan.encodings[n]) for n in indices
+                ]
+                mode = LEARNED[plan.policy][1]
+                self._policies[g] = LearnedPolicy(self.model, plan.cfg, grippers, mode=mode, epsilon=0.0)
+        return self._policies[g]
+
+    def run(self, unit: Unit) -> dict:
+        """Run one episode in a fresh simulation; returns its JSON-ready record."""
+        t0 = time.perf_counter()
+        plan = self.plan
+        seed = episode_seed(plan.seed, unit.episode)
+        rng = np.random.default_rng(policy_seed(plan.seed, unit.episode))
+        policy = self.policy(unit.gripper)
+        attempts = []
+        with Simulation(plan.cfg, seed=seed) as sim:
+            sim.reset_scene(plan.scene, plan.objects, seed=seed)
+            scene_objects = [[o.name, o.role] for o in sim.objects.values()]
+            limit = max_attempts(sim, plan.scene)
+            for step in range(limit):
+                if step > 0:
+                    sim.settle()
+                obs = sim.observe()
+                action, score = policy.act(obs, plan.openings, rng)
+                chosen = unit.gripper if unit.gripper is not None else policy.last_choice.action[4]
+                gripper = sim.load_gripper(self.spec(chosen), plan.scale)
+                outcome = execute_grasp(sim, gripper, action, plan.openings, obs.heightmap)
+                attempts.append(
+                    {
+                        "step": step,
+                        "gripper": plan.gripper_names[chosen],
+                        "executed": gripper.spec.name,
+                        "action": [int(a) for a in action],
+                        "opening": outcome.opening,
+                        "score": float(score),
+                        "success": bool(outcome.success),
+                        "lifted_targets": len(outcome.lifted_targets),
+                        "lifted_obstacles": len(outcome.lifted_obstacles),
+                    }
+                )
+                if not sim.targets:
+                    break
+            targets_left = len(sim.targets)
+        return {
+            "index": unit.index,
+            "episode": unit.episode,
+            "gripper": None if unit.gripper is None else plan.gripper_names[unit.gripper],
+            "scene_seed": seed,
+            "objects": scene_objects,
+            "max_attempts": limit,
+            "attempts": len(attempts),
+            "successes": sum(a["success"] for a in attempts),
+            "targets_left": targets_left,
+            "trials": attempts,
+            "wall_s": time.perf_counter() - t0,
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Where the units run
+# --------------------------------------------------------------------------------------
+
+
+def _progress(done: int, total: int, quiet: bool) -> None:
+    if not quiet and (done == total or done % max(1, total // 10) == 0):
+        print(f"evaluate: {done}/{total} episodes", file=sys.stderr, flush=True)
+
+
+def _run_local(plan: EvalPlan, units: list[Unit], quiet: bool) -> list[dict]:
+    before = torch.get_num_threads()
+    try:
+        worker = EvalWorker(plan, torch_threads=plan.cfg.actor.torch_threads)
+        out = []
+        for n, unit in enumerate(units):
+            out.append(worker.run(unit))
+            _progress(n + 1, len(units), quiet)
+        return out
+    finally:
+        torch.set_num_threads(before)
+
+
+def _run_ray(plan: EvalPlan, units: list[Unit], actors: int, address: str | None, quiet: bool) -> list[dict]:
+    import ray
+    from ray.exceptions import RayTaskError
+
+    started = not ray.is_initialized()
+    if started:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=max(os.cpu_count() or 1, actors), include_dashboard=False, log_to_driver=False)
+    workers = []
+    try:
+        gpus = 1.0 / actors if plan.device == "cuda" and plan.model_state is not None else 0
+        remote = ray.remote(num_cpus=1, num_gpus=gpus)(EvalWorker)
+        plan_ref = ray.put(plan)
+        workers = [remote.remote(plan_ref, plan.cfg.actor.torch_threads) for _ in range(actors)]
+        todo = list(reversed(units))
+        pending: dict = {}
+        out: list[dict] = []
+        for w in workers:
+            if todo:
+                pending[w.run.remote(todo.pop())] = w
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            w = pending.pop(ready[0])
+            try:
+                out.append(ray.get(ready[0]))
+            except RayTaskError as e:
+                cause = getattr(e, "cause", None)
+                if isinstance(cause, (ValueError, SimulationError)):
+                    raise cause from None
+                raise
+            _progress(len(out), len(units), quiet)
+            if todo:
+                pending[w.run.remote(todo.pop())] = w
+        return out
+    finally:
+        for w in workers:
+            ray.kill(w)
+        if started:
+            ray.shutdown()
+
+
+def run_units(plan: EvalPlan, units: list[Unit], actors: int = 1, address: str | None = None,
+              quiet: bool = True) -> list[dict]:
+    """Run ``units`` in this process (``actors`` = 1) or on ``actors`` Ray actors (one torch thread
+    each); episode records sorted by unit index (the same for any ``actors``)."""
+    actors = max(1, min(int(actors), len(units)))
+    if actors == 1 and not address:
+        out = _run_local(plan, units, quiet)
+    else:
+        out = _run_ray(plan, units, actors, address, quiet)
+    return sorted(out, key=lambda r: r["index"])
+
+
+# --------------------------------------------------------------------------------------
+# Summary, JSON and Markdown
+# --------------------------------------------------------------------------------------
+
+
+def _rate(successes: int, attempts: int) -> float | None:
+    return successes / attempts if attempts else None
+
+
+def objects_label(objects: str) -> str:
+    """Column label of an object set: ``O_tr`` (train), ``O_te`` (test), else ``O_<name>``."""
+    return {"train": "O_tr", "test": "O_te"}.get(objects, f"O_{objects}")
+
+
+def grippers_label(selection: str, names: list[str]) -> str:
+    """Column label of a gripper selection: ``G_tr`` (train), ``G_te`` (test), else ``G_<name>+<name>``
+    from the grippers' registered ``names``."""
+    if selection in ("train", "test"):
+        return {"train": "G_tr", "test": "G_te"}[selection]
+    return "G_" + "+".join(names)
+
+
+def summarise(plan: EvalPlan, results: list[dict], argv: list[str], grippers: str, extra: dict | None = None) -> dict:
+    """The result JSON of one cell: per gripper, the average, every episode and attempt.
+
+    ``grippers``: the ``--grippers`` selection; ``extra``: more keys (checkpoint, actors, wall time).
+    """
+    per: dict[str, dict] = {}
+    for name in plan.gripper_names:
+        per[name] = {"episodes": 0, "attempts": 0, "successes": 0}
+    for r in results:
+        for name in {t["gripper"] for t in r["trials"]} | ({r["gripper"]} if r["gripper"] is not None else set()):
+            per[name]["episodes"] += 1
+        for t in r["trials"]:
+            per[t["gripper"]]["attempts"] += 1
+            per[t["gripper"]]["successes"] += int(t["success"])
+    for v in per.values():
+        v["rate"] = _rate(v["successes"], v["attempts"])
+    attempts = sum(r["attempts"] for r in results)
+    successes = sum(r["successes"] for r in results)
+    pooled = _rate(successes, attempts)
+    if plan.policy == "adagrasp":
+        rate = pooled
+        for v in per.values():
+            v["chosen_fraction"] = v["attempts"] / attempts if attempts else None
+    else:
+        rate = float(np.mean([v["rate"] for v in per.values()]))
+    return {
+        "format": FORMAT,
+        "command": "python -m launcher evaluate " + shlex.join(argv),
+        "policy": plan.policy,
+        "scene": plan.scene,
+        "objects": plan.objects,
+        "objects_label": objects_label(plan.objects),
+        "grippers": grippers,
+        "grippers_label": grippers_label(grippers, plan.gripper_names),
+        "gripper_names": plan.gripper_names,
+        "cameras": plan.cfg.sim.cameras,
+        "episodes": plan.episodes,
+        "seed": plan.seed,
+        "scene_seeds": [episode_seed(plan.seed, e) for e in range(plan.episodes)],
+        "openings": list(plan.openings),
+        "scale": plan.scale,
+        "max_attempts": results[0]["max_attempts"],
+        "rate": rate,
+        "average": {
+            "rate": rate,
+            "rate_definition": "successes / attempts" if plan.policy == "adagrasp" else "mean of per-gripper rates",
+            "attempts": attempts,
+            "successes": successes,
+            "pooled_rate": pooled,
+        },
+        "per_gripper": per,
+        "episode_results": results,
+        **(extra or {}),
+        "config": to_dict(plan.cfg),
+    }
+
+
+def _cell(summary: dict) -> str:
+    return f"{summary['objects_label']}/{summary['grippers_label']}"
+
+
+def _column_key(summary: dict, with_cameras: bool) -> tuple:
+    cell = _cell(summary)
+    order = CELL_ORDER.index(cell) if cell in CELL_ORDER else len(CELL_ORDER)
+    cams = summary["cameras"] if with_cameras else 0
+    return (SCENE_KINDS.index(summary["scene"]), order, cell, cams)
+
+
+def _column_title(key: tuple) -> str:
+    scene, _, cell, cams = key
+    title = f"{SCENE_KINDS[scene]} {cell}"
+    return title + (f" ({cams} cam{'s' if cams > 1 else ''})" if cams else "")
+
+
+def _fmt(rate: float | None) -> str:
+    return "n/a" if rate is None else f"{rate:.3f}"
+
+
+def table_markdown(results: list[tuple[str, dict]]) -> str:
+    """Markdown of the paper's Table I layout: rows = policies, columns = scene kind x O x G (x
+    cameras when the results mix camera counts), then the sources and, for one result, its grippers."""
+    with_cameras = len({s["cameras"] for _, s in results}) > 1
+    cells: dict[tuple[str, tuple], tuple[str, dict]] = {}
+    for path, s in results:
+        key = (s["policy"], _column_key(s, with_cameras))
+        if key in cells:
+            raise EvaluationError(
+                f"{path}: policy {s['policy']}, {_column_title(key[1])}: the same cell is already in {cells[key][0]}"
+            )
+        cells[key] = (path, s)
+    columns = sorted({k for _, k in cells})
+    rows = [p for p in POLICIES if any(pol == p for pol, _ in cells)]
+    lines = ["| policy | " + " | ".join(_column_title(c) for c in columns) + " |"]
+    lines.append("|---|" + "---:|" * len(columns))
+    for p in rows:
+        vals = [_fmt(cells[(p, c)][1]["rate"]) if (p, c) in cells else "–" for c in columns]
+        lines.append(f"| {p} | " + " | ".join(vals) + " |")
+    lines += [
+        "",
+        "Success rate = successes / attempts (one attempt = one grasp; success = exactly one target lifted "
+        "and no obstacle); per-gripper policies: mean of the per-gripper rates; adagrasp: over all attempts.",
+        "",
+        "| source | policy | scene | objects | grippers | cameras | episodes | attempts | successes | seed "
+        "| checkpoint |",
+        "|---|---|---|---|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for path, s in results:
+        lines.append(
+            f"| {path} | {s['policy']} | {s['scene']} | {s['objects']} | {s['grippers']} | {s['cameras']} | "
+            f"{s['episodes']} | {s['average']['attempts']} | {s['average']['successes']} | {s['seed']} | "
+            f"{s.get('checkpoint') or '–'} |"
+        )
+    if len(results) == 1:
+        s = results[0][1]
+        head = "chosen attempts" if s["policy"] == "adagrasp" else "attempts"
+        lines += ["", f"| gripper | {head} | successes | rate |", "|---|---:|---:|---:|"]
+        for name, v in s["per_gripper"].items():
+            lines.append(f"| {name} | {v['attempts']} | {v['successes']} | {_fmt(v['rate'])} |")
+    return "\n".join(lines) + "\n"
+
+
+_REQUIRED = ("format", "policy", "scene", "objects_label", "grippers_label", "grippers", "cameras", "rate",
+             "episodes", "seed", "average", "per_gripper")
+
+
+def read_result(path: str | Path) -> dict:
+    """A result JSON written by ``evaluate --json``; raises one line naming the file and the key."""
+    path = Path(path)
+    if not path.is_file():
+        raise EvaluationError(f"{path}: result file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise EvaluationError(f"{path}: not valid JSON ({' '.join(str(e).split())})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        got = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise EvaluationError(f"{path}: format: expected {FORMAT!r}, got {got!r}")
+    for key in _REQUIRED:
+        if key not in data:
+            raise EvaluationError(f"{path}: {key}: missing")
+    if data["policy"] not in POLICIES:
+        raise EvaluationError(f"{path}: policy: expected one of {list(POLICIES)}, got {data['policy']!r}")
+    if data["scene"] not in SCENE_KINDS:
+        raise EvaluationError(f"{path}: scene: expected one of {list(SCENE_KINDS)}, got {data['scene']!r}")
+    return data
+
+
+def _write_atomic(path: str | Path, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------
+
+
+def plan_from_argv(argv: list[str]) -> EvalPlan:
+    """The validated :class:`EvalPlan` of an ``evaluate`` command line (nothing runs yet)."""
+    return make_plan(_parser().parse_args(argv))
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m launcher evaluate",
+        description="Evaluate one policy on one (scene, objects, grippers) cell with the paper's protocol; "
+        "'evaluate table RESULT.json ... --md OUT' merges results into the paper's Table I.",
+    )
+    ap.add_argument("--checkpoint", default=None, help="model checkpoint (learned policies only)")
+    ap.add_argument("--scene", choices=SCENE_KINDS, required=True)
+    ap.add_argument("--objects", required=True, help="object set: train | test | ycb | household | ...")
+    ap.add_argument("--grippers", required=True, help="train | test | NAME,NAME,... (names or spec YAML paths)")
+    ap.add_argument("--policy", choices=POLICIES, required=True)
+    ap.add_argument("--cameras", type=int, default=1, help="cameras fused into the TSDF, 1-4")
+    ap.add_argument("--episodes", type=int, required=True, help="episodes per gripper (adagrasp: in all)")
+    ap.add_argument("--actors", type=int, default=1, help="Ray actors (1 = this process, no Ray)")
+    ap.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray)")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                    help="torch device of the network (learned policies; Ray actors share one GPU)")
+    ap.add_argument("--seed", type=int, default=0, help="root seed of the scene and policy seeds")
+    ap.add_argument("--scale", type=float, default=1.0, help="global gripper scale")
+    ap.add_argument("--config", default="default", help="evaluation config: default | paper | YAML path")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override, repeatable")
+    ap.add_argument("--json", default=None, help="write every number here")
+    ap.add_argument("--md", default=None, help="write the Markdown table here")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
+    return ap
+
+
+def _table_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m launcher evaluate table", description="Merge evaluation results into the paper's Table I."
+    )
+    ap.add_argument("results", nargs="+", help="result JSON files written by evaluate --json")
+    ap.add_argument("--md", default=None, help="write the Markdown here (default: print it)")
+    return ap
+
+
+def evaluate(argv: list[str]) -> dict:
+    """Parse ``argv``, run the evaluation, write --json / --md; returns the summary."""
+    args = _parser().parse_args(argv)
+    t0 = time.perf_counter()
+    plan = make_plan(args)
+    results = run_units(plan, plan.units(), actors=args.actors, address=args.address, quiet=args.quiet)
+    extra = {
+        "checkpoint": args.checkpoint,
+        "checkpoint_variant": plan.model_cfg.model.variant if plan.model_cfg is not None else None,
+        "checkpoint_version": plan.model_version if plan.model_cfg is not None else None,
+        "actors": args.actors,
+        "wall_s": time.perf_counter() - t0,
+    }
+    summary = summarise(plan, results, argv, args.grippers, extra)
+    if args.json:
+        _write_atomic(args.json, json.dumps(summary, indent=1) + "\n")
+    if args.md:
+        _write_atomic(args.md, table_markdown([(args.json or "(this run)", summary)]))
+    return summary
+
+
+def table(argv: list[str]) -> str:
+    """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it."""
+    args = _table_parser().parse_args(argv)
+    markdown = table_markdown([(p, read_result(p)) for p in args.results])
+    if args.md:
+        _write_atomic(args.md, markdown)
+    else:
+        print(markdown, end="")
+    return markdown
+
+
+def cli(argv: list[str]) -> int:
+    try:
+        if argv and argv[0] == "table":
+            table(argv[1:])
+            return 0
+        summary = evaluate(argv)
+    except (ValueError, SimulationError) as e:
+        print(f"evaluate: error: {e}", file=sys.stderr)
+        return 2
+    per = ", ".join(
+        f"{n} {v['successes']}/{v['attempts']}" for n, v in summary["per_gripper"].items() if v["attempts"]
+    )
+    print(
+        f"evaluate: {summary['policy']} on {summary['scene']} {summary['objects_label']}/{summary['grippers_label']} "
+        f"({summary['cameras']} camera(s), {summary['episodes']} episodes, seed {summary['seed']}): "
+        f"rate {_fmt(summary['rate'])} ({summary['average']['successes']}/{summary['average']['attempts']} grasps); "
+        f"{per}; {summary['wall_s']:.1f} s"
+    )
+    return 0

@@ -1,0 +1,364 @@
+"""The evaluation protocol: scene kinds, scripted and learned policies, seeds shared by every
+policy and gripper, history-independent episodes, errors, camera counts and the merged table."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from actors import evaluate as ev
+from actors.rollout import episode_seed
+from common.checkpoint import save_checkpoint
+from common.config import load_config
+from common.network import build_model
+
+GRIPPER = "parallel_jaw-0"
+OTHER = "three_finger-1"
+SHORT = ["--set", "sim.multi_max_attempts=3", "--set", "sim.obstacle_max_attempts=3"]
+"""Fewer attempts per multi / obstacle episode than the protocol's 7 / 5, to keep the tests short."""
+SMALL = {
+    "scene_grid": {"voxel_size": 0.008},
+    "gripper_grid": {"shape": [16, 16, 8], "voxel_size": 0.008},
+    "model": {"rotations": 4, "channels": 8, "min_surface_height": 0.005},
+    "grippers": {"eval_openings": [0.5, 0.75, 1.0]},
+}
+"""A 48 x 48 x 16 scene grid, 16 x 16 x 8 gripper grid, 4 rotations: the same pipeline, fast."""
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def run_cli(argv, tmp_path, name="out"):
+    """Run ``evaluate`` in this process; returns (exit status, result dict or None, json path)."""
+    out = tmp_path / f"{name}.json"
+    rc = ev.cli([*argv, "--json", str(out), "--quiet"])
+    return rc, (json.loads(out.read_text()) if out.is_file() else None), out
+
+
+@pytest.fixture(scope="module")
+def scripted(tmp_path_factory):
+    """Cached scripted runs: (scene, policy) -> (result, json path); 2 episodes, one gripper."""
+    cache = {}
+    root = tmp_path_factory.mktemp("scripted")
+
+    def get(scene, policy):
+        if (scene, policy) not in cache:
+            argv = ["--scene", scene, "--objects", "train", "--grippers", GRIPPER, "--policy", policy,
+                    "--episodes", "2", "--seed", "3", *SHORT]
+            rc, result, path = run_cli(argv, root, f"{scene}-{policy}")
+            assert rc == 0
+            cache[(scene, policy)] = (result, path)
+        return cache[(scene, policy)]
+
+    return get
+
+
+def check_protocol(result, scene):
+    """Counts, the episode-ending rule, the metric and the scene composition of a result."""
+    limit = {"single": 1, "multi": 3, "obstacle": 3}[scene]
+    roles = {"single": (1, 0), "multi": (5, 0), "obstacle": (3, 3)}[scene]
+    assert result["max_attempts"] == limit
+    assert result["scene_seeds"] == [episode_seed(result["seed"], e) for e in range(result["episodes"])]
+    total_a = total_s = 0
+    for r in result["episode_results"]:
+        assert r["scene_seed"] == result["scene_seeds"][r["episode"]]
+        assert [role for _, role in r["objects"]].count("target") == roles[0]
+        assert [role for _, role in r["objects"]].count("obstacle") == roles[1]
+        assert 1 <= r["attempts"] == len(r["trials"]) <= limit
+        if r["attempts"] < limit:
+            assert r["targets_left"] == 0, "an episode ends early only when no target is left"
+        assert r["successes"] == sum(t["success"] for t in r["trials"]) <= roles[0]
+        for t in r["trials"]:
+            assert t["executed"] == t["gripper"]
+            assert t["opening"] == result["openings"][t["action"][3]]
+            assert t["success"] == (t["lifted_targets"] == 1 and t["lifted_obstacles"] == 0)
+        total_a += r["attempts"]
+        total_s += r["successes"]
+    assert result["average"]["attempts"] == total_a and result["average"]["successes"] == total_s
+    assert result["average"]["pooled_rate"] == pytest.approx(total_s / total_a)
+    rates = [v["rate"] for v in result["per_gripper"].values()]
+    assert result["rate"] == pytest.approx(np.mean(rates))
+
+
+@pytest.mark.parametrize("policy", ["heuristic", "random"])
+@pytest.mark.parametrize("scene", ["single", "multi", "obstacle"])
+def test_each_scene_kind_with_scripted_policies(scripted, scene, policy):
+    result, _ = scripted(scene, policy)
+    assert result["policy"] == policy and result["scene"] == scene and result["objects_label"] == "O_tr"
+    assert result["per_gripper"][GRIPPER]["episodes"] == 2
+    check_protocol(result, scene)
+
+
+@pytest.mark.parametrize("scene", ["single", "multi", "obstacle"])
+def test_policies_see_the_same_scenes(scripted, scene):
+    heuristic, _ = scripted(scene, "heuristic")
+    random, _ = scripted(scene, "random")
+    assert [r["objects"] for r in heuristic["episode_results"]] == [r["objects"] for r in random["episode_results"]]
+
+
+def test_episodes_do_not_depend_on_what_ran_before():
+    """The same units in the opposite order (the gripper switching in between) give the same
+    records: what --actors K relies on."""
+    plan = ev.plan_from_argv(["--scene", "multi", "--objects", "train", "--grippers", f"{GRIPPER},{OTHER}",
+                              "--policy", "heuristic", "--episodes", "1", "--seed", "5",
+                              "--set", "sim.multi_max_attempts=2"])
+    units = plan.units()
+    assert [u.gripper for u in units] == [0, 1]
+    forward = ev.run_units(plan, units)
+    backward = ev.run_units(plan, list(reversed(units)))
+    strip = [[{k: v for k, v in r.items() if k != "wall_s"} for r in rs] for rs in (forward, backward)]
+    assert strip[0] == strip[1]
+    assert forward[0]["objects"] == forward[1]["objects"], "both grippers see the same scene"
+
+
+@pytest.mark.slow
+def test_results_identical_for_one_and_two_ray_actors(tmp_path):
+    argv = ["--scene", "multi", "--objects", "train", "--grippers", f"{GRIPPER},{OTHER}", "--policy", "heuristic",
+            "--episodes", "2", "--seed", "1", "--set", "sim.multi_max_attempts=2"]
+    rc1, one, _ = run_cli([*argv, "--actors", "1"], tmp_path, "k1")
+    rc2, two, _ = run_cli([*argv, "--actors", "2"], tmp_path, "k2")
+    assert rc1 == rc2 == 0
+    strip = [[{k: v for k, v in r.items() if k != "wall_s"} for r in x["episode_results"]] for x in (one, two)]
+    assert strip[0] == strip[1]
+    assert one["per_gripper"] == two["per_gripper"]
+
+
+@pytest.mark.parametrize("cameras", [1, 2, 3, 4])
+def test_camera_counts(tmp_path, cameras):
+    rc, result, _ = run_cli(["--scene", "single", "--objects", "train", "--grippers", GRIPPER, "--policy",
+                             "heuristic", "--episodes", "1", "--cameras", str(cameras)], tmp_path)
+    assert rc == 0
+    assert result["cameras"] == cameras and result["config"]["sim"]["cameras"] == cameras
+    assert result["average"]["attempts"] == 1
+
+
+# ---------------------------------------------------------------- learned policies
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """An evaluation config on the small grid and untrained checkpoints of the three variants."""
+    root = tmp_path_factory.mktemp("small")
+    config = root / "small.yaml"
+    config.write_text(yaml.safe_dump(SMALL))
+    paths = {}
+    for variant in ("adagrasp", "init-only", "scene-only"):
+        cfg = load_config(config, [f"model.variant={variant}"])
+        torch.manual_seed(0)
+        paths[variant] = save_checkpoint(root / f"{variant}.pt", build_model(cfg), cfg, step=3, version=7)
+    return config, paths
+
+
+def learned_argv(small, policy, variant, grippers, scene="single", episodes=2):
+    config, paths = small
+    return ["--config", str(config), "--checkpoint", str(paths[variant]), "--scene", scene, "--objects", "train",
+            "--grippers", grippers, "--policy", policy, "--episodes", str(episodes), *SHORT]
+
+
+@pytest.mark.parametrize("policy", ["fix-config", "fix-gripper"])
+def test_learned_per_gripper_policies(small, tmp_path, policy):
+    rc, result, _ = run_cli(learned_argv(small, policy, "adagrasp", f"{GRIPPER},{OTHER}"), tmp_path)
+    assert rc == 0
+    assert result["checkpoint_variant"] == "adagrasp" and result["checkpoint_version"] == 7
+    assert result["openings"] == [0.5, 0.75, 1.0]
+    assert set(result["per_gripper"]) == {GRIPPER, OTHER}
+    assert all(v["episodes"] == 2 and v["attempts"] == 2 for v in result["per_gripper"].values())
+    check_protocol(result, "single")
+    by_gripper = {g: [r for r in result["episode_results"] if r["gripper"] == g] for g in (GRIPPER, OTHER)}
+    assert [r["objects"] for r in by_gripper[GRIPPER]] == [r["objects"] for r in by_gripper[OTHER]]
+    for r in result["episode_results"]:
+        for t in r["trials"]:
+            assert t["gripper"] == r["gripper"] == t["executed"]
+            assert 0.0 <= t["score"] <= 1.0 and t["score"] != 0.5
+
+
+def test_adagrasp_executes_the_gripper_it_chooses(small, tmp_path):
+    """The choice follows the scores, not the order of --grippers, and the chosen gripper is the one
+    the simulation executes."""
+    chosen = []
+    for order in (f"{GRIPPER},{OTHER}", f"{OTHER},{GRIPPER}"):
+        rc, result, _ = run_cli(learned_argv(small, "adagrasp", "adagrasp", order, episodes=3), tmp_path)
+        assert rc == 0
+        assert result["episodes"] == 3 and result["average"]["attempts"] == 3
+        trials = [t for r in result["episode_results"] for t in r["trials"]]
+        assert all(t["executed"] == t["gripper"] for t in trials)
+        assert all(r["gripper"] is None for r in result["episode_results"])
+        counts = {g: v["attempts"] for g, v in result["per_gripper"].items()}
+        assert counts == {g: sum(t["gripper"] == g for t in trials) for g in (GRIPPER, OTHER)}
+        assert result["rate"] == pytest.approx(result["average"]["pooled_rate"])
+        chosen.append([(t["gripper"], t["action"], t["score"]) for t in trials])
+    assert [c[:2] for c in chosen[0]] == [c[:2] for c in chosen[1]]
+    np.testing.assert_allclose([c[2] for c in chosen[0]], [c[2] for c in chosen[1]], rtol=1e-5)
+
+
+class _Alternating:
+    """A policy honouring the LearnedPolicy interface that picks gripper 1, then 0, then 1, ..."""
+
+    name = "alternating"
+
+    def __init__(self, heuristic):
+        self.heuristic = heuristic
+        self.calls = 0
+        self.last_choice = None
+
+    def act(self, obs, openings, rng):
+        action, score = self.heuristic.act(obs, openings, rng)
+        g = 1 - self.calls % 2
+        self.calls += 1
+        self.last_choice = type("Choice", (), {"action": (*action, g)})()
+        return action, score
+
+
+def test_gripper_switches_within_an_episode(small):
+    """Attempt by attempt the simulation loads whichever gripper the policy chose."""
+    from actors.policies import make_policy
+
+    plan = ev.plan_from_argv(learned_argv(small, "adagrasp", "adagrasp", f"{GRIPPER},{OTHER}", scene="multi",
+                                          episodes=1))
+
+    class Worker(ev.EvalWorker):
+        def policy(self, g):
+            return _Alternating(make_policy("heuristic", self.plan.cfg))
+
+    record = Worker(plan).run(plan.units()[0])
+    executed = [t["executed"] for t in record["trials"]]
+    assert executed == [OTHER, GRIPPER, OTHER][: len(executed)] and len(executed) >= 2
+    assert [t["gripper"] for t in record["trials"]] == executed
+
+
+@pytest.mark.parametrize("variant", ["init-only", "scene-only"])
+def test_variant_policies_run_in_fix_gripper_mode(small, tmp_path, variant):
+    rc, result, _ = run_cli(learned_argv(small, variant, variant, GRIPPER, episodes=1), tmp_path)
+    assert rc == 0 and result["checkpoint_variant"] == variant and result["policy"] == variant
+    check_protocol(result, "single")
+
+
+@pytest.mark.parametrize(
+    "policy, variant, needle",
+    [
+        ("scene-only", "adagrasp", "needs a checkpoint of variant scene-only, this one is adagrasp"),
+        ("fix-gripper", "init-only", "of variant adagrasp, this one is init-only (use --policy init-only)"),
+        ("adagrasp", "scene-only", "use --policy scene-only"),
+    ],
+)
+def test_policy_variant_mismatch_is_one_line(small, tmp_path, capsys, policy, variant, needle):
+    rc, result, out = run_cli(learned_argv(small, policy, variant, GRIPPER), tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and not out.exists()
+    assert "\n" not in err and needle in err and "model.variant" in err and str(small[1][variant]) in err
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["--grippers", "no_such_gripper", "--policy", "heuristic"], "no_such_gripper: unknown gripper"),
+        (["--grippers", f"{GRIPPER},{GRIPPER}", "--policy", "heuristic"], "given twice"),
+        (["--objects", "no_such_set", "--policy", "heuristic"], "object set 'no_such_set': unknown"),
+        (["--policy", "fix-gripper"], "--checkpoint: the fix-gripper policy needs a checkpoint"),
+        (["--policy", "random", "--checkpoint", "x.pt"], "--checkpoint: the random policy takes no checkpoint"),
+        (["--policy", "heuristic", "--cameras", "5"], "sim.cameras"),
+        (["--policy", "heuristic", "--episodes", "0"], "--episodes"),
+    ],
+)
+def test_bad_input_is_one_line(tmp_path, capsys, argv, needle):
+    base = {"--scene": "single", "--objects": "train", "--grippers": GRIPPER, "--episodes": "1"}
+    flags = dict(zip(argv[::2], argv[1::2]))
+    full = [x for k, v in {**base, **flags}.items() for x in (k, v)]
+    rc, result, out = run_cli(full, tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and not out.exists()
+    assert err.startswith("evaluate: error: ") and "\n" not in err and needle in err
+
+
+def test_checkpoint_grid_must_match_the_evaluation_config(small, tmp_path, capsys):
+    _, paths = small
+    argv = ["--checkpoint", str(paths["adagrasp"]), "--scene", "single", "--objects", "train", "--grippers",
+            GRIPPER, "--policy", "fix-gripper", "--episodes", "1"]
+    rc, result, _ = run_cli(argv, tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and "\n" not in err and "scene_grid" in err and str(paths["adagrasp"]) in err
+
+
+# ---------------------------------------------------------------- tables
+
+
+def relabel(result, tmp_path, name, **fields):
+    data = {**result, **fields}
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_table_merges_results_in_the_papers_layout(scripted, tmp_path):
+    """Rows in the paper's order (reference rows last); columns by scene kind, then O_tr/G_tr,
+    O_tr/G_te, O_te/G_tr, O_te/G_te, then other selections. Copies of real results are relabelled
+    to fill the cells."""
+    single, single_path = scripted("single", "heuristic")
+    multi, _ = scripted("multi", "heuristic")
+    rnd, rnd_path = scripted("single", "random")
+    g_tr = {"grippers": "train", "grippers_label": "G_tr"}
+    tr = relabel(single, tmp_path, "tr", **g_tr)
+    te = relabel(single, tmp_path, "te", objects="test", objects_label="O_te", grippers="test", grippers_label="G_te")
+    multi_tr = relabel(multi, tmp_path, "multi_tr", **g_tr)
+    fix = relabel(single, tmp_path, "fix", policy="fix-gripper", rate=0.25, **g_tr)
+    md = tmp_path / "table.md"
+    files = [multi_tr, te, tr, rnd_path, fix, single_path]
+    assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 0
+    lines = md.read_text().splitlines()
+    assert lines[0] == f"| policy | single O_tr/G_tr | single O_te/G_te | single O_tr/G_{GRIPPER} | multi O_tr/G_tr |"
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in lines[2:5]}
+    assert list(rows) == ["fix-gripper", "random", "heuristic"], "paper rows first, reference rows last"
+    cells = {p: [c.strip() for c in rows[p].strip("|").split("|")[1:]] for p in rows}
+    rate = f"{single['rate']:.3f}"
+    assert cells["heuristic"] == [rate, rate, rate, f"{multi['rate']:.3f}"]
+    assert cells["fix-gripper"] == ["0.250", "–", "–", "–"]
+    assert cells["random"] == ["–", "–", f"{rnd['rate']:.3f}", "–"]
+    assert all(f"| {p} |" in md.read_text() for p in files), "every source is listed"
+
+
+def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys):
+    single, single_path = scripted("single", "heuristic")
+    two = relabel(single, tmp_path, "two", cameras=2, rate=0.5)
+    capsys.readouterr()
+    assert ev.cli(["table", str(single_path), str(two)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"| policy | single O_tr/G_{GRIPPER} (1 cam) | single O_tr/G_{GRIPPER} (2 cams) |"
+    assert lines[2] == f"| heuristic | {single['rate']:.3f} | 0.500 |"
+    dup = relabel(single, tmp_path, "dup")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    old = relabel(single, tmp_path, "old", format="something-else")
+    md = tmp_path / "never.md"
+    for files, needle in (([single_path, dup], "the same cell is already in"), ([bad], "not valid JSON"),
+                          ([old], "format: expected"), ([tmp_path / "gone.json"], "result file not found")):
+        assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and needle in err
+        assert not md.exists()
+
+
+def test_md_of_one_run_lists_every_gripper(small, tmp_path):
+    md = tmp_path / "one.md"
+    rc, result, out = run_cli([*learned_argv(small, "fix-gripper", "adagrasp", f"{GRIPPER},{OTHER}", episodes=1),
+                               "--md", str(md)], tmp_path)
+    assert rc == 0
+    text = md.read_text()
+    assert text.startswith(f"| policy | single O_tr/G_{GRIPPER}+{OTHER} |\n")
+    assert f"| fix-gripper | {result['rate']:.3f} |" in text
+    for name, v in result["per_gripper"].items():
+        assert f"| {name} | {v['attempts']} | {v['successes']} |" in text
+    assert str(out) in text
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the machine has a CUDA device")
+def test_cuda_without_a_device_is_one_line(small, tmp_path, capsys):
+    rc, result, _ = run_cli([*learned_argv(small, "fix-gripper", "adagrasp", GRIPPER), "--device", "cuda"], tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and "\n" not in err and "--device cuda" in err
