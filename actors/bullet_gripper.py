@@ -2,9 +2,10 @@
 
 Couplings (URDF ``<mimic>`` and declared ones; PyBullet ignores ``<mimic>``): a ``mimic``
 coupling is a JOINT_GEAR constraint between the driver and the coupled joint (a rigid,
-two-way linkage: a blocked follower also stops the driver); a ``target`` coupling is a
-per-step position target that follows the driver's commanded target (under-actuated and
-adaptive fingers keep closing when the driver is blocked). Call :meth:`BulletGripper.step`
+two-way linkage: a blocked follower also stops the driver); a ``measured`` coupling is a
+per-step position target at the driver's measured position; a ``target`` coupling is a
+per-step position target at the driver's commanded target (under-actuated and adaptive
+fingers keep closing when the driver is blocked). Call :meth:`BulletGripper.step`
 once before every ``stepSimulation``.
 
 Call loop::
@@ -146,7 +147,7 @@ class BulletGripper:
             if c.joint in self._geared:
                 continue
             src = c.driver
-            if c.mode == "mimic":
+            if c.mode == "measured":
                 if src not in measured:
                     measured[src] = p.getJointState(self.body_id, self._joint[src], physicsClientId=self.client)[0]
                 base = measured[src]

@@ -32,6 +32,12 @@ CHECK_OPENINGS = 11
 """Openings visited from 0 to 1 by the check."""
 CHECK_SCALES = (0.8, 1.2)
 """Global scales whose kinematics the check verifies besides 1.0."""
+LIFT_OFFSETS = ((0.0, 0.0), (0.005, 0.005), (-0.005, 0.003))
+"""Object placements (m from the TCP axis) of the lift tests; physics makes single trials noisy."""
+LIFT_MIN_SUCCESSES = 2
+"""A lift test passes when at least this many placements are lifted."""
+LIFT_SIZE_FRACTION = 0.7
+"""Lift-test objects are this fraction of the open aperture wide (clipped to 2.5-5 cm)."""
 SETTLE_STEPS = 120
 """Simulation steps allowed for the joints to reach each opening (0.5 s at 240 Hz)."""
 
@@ -94,7 +100,7 @@ def _sim_sweep(spec, scale: float, report: CheckReport) -> None:
                 p.stepSimulation(physicsClientId=client)
             q = g.joint_state()
             for c in spec.couplings:
-                if c.mode == "mimic":
+                if c.mode in ("mimic", "measured"):
                     want = c.multiplier * q[c.driver] + c.offset * (scale if c.prismatic else 1.0)
                     err = max(err, abs(q[c.joint] - want))
             report.apertures_sim.append(round(g.finger_aperture(), 5))
@@ -169,12 +175,16 @@ def check_gripper(spec, out: Path | None = None, grid=None, physics: bool = True
             r.reasons.append(f"opening does not move the fingers in simulation (aperture {r.apertures_sim[0]:.4f} -> {r.apertures_sim[-1]:.4f} m)")
         if r.coupling_error > 0.02:
             r.reasons.append(f"couplings do not follow their drivers (error {r.coupling_error:.4f})")
-        size = float(np.clip(0.6 * r.apertures_fk[-1], 0.025, 0.05))
+        size = float(np.clip(LIFT_SIZE_FRACTION * r.apertures_fk[-1], 0.025, 0.05))
         for shape in ("box", "cylinder"):
-            res = lift_test(spec, 1.0, shape, size)
-            r.lift[shape] = {"size_m": round(size, 4), "success": res.success, "rise_m": round(res.object_rise, 4)}
-            if not res.success:
-                r.reasons.append(f"lift test: {res.reason}")
+            results = [lift_test(spec, 1.0, shape, size, offset=off) for off in LIFT_OFFSETS]
+            wins = sum(x.success for x in results)
+            ok = wins >= LIFT_MIN_SUCCESSES
+            r.lift[shape] = {"size_m": round(size, 4), "success": ok, "successes": wins, "trials": len(results),
+                             "rise_m": [round(x.object_rise, 4) for x in results]}
+            if not ok:
+                r.reasons.append(f"lift test: {shape} lifted in {wins} of {len(results)} placements "
+                                 f"({'; '.join(x.reason for x in results if x.reason)})")
     if out is not None and not r.reasons:
         r.images = _render(spec, out, grid)
     r.passed = not r.reasons
@@ -214,7 +224,8 @@ def _cmd_check(args) -> int:
         print("  aperture (sim, m): " + " ".join(f"{a:.3f}" for a in r.apertures_sim))
         print(f"  coupling error: {r.coupling_error:.5f}")
     for shape, res in r.lift.items():
-        print(f"  lift {shape} ({res['size_m'] * 100:.1f} cm): {'ok' if res['success'] else 'FAILED'} (rose {res['rise_m']:.3f} m)")
+        print(f"  lift {shape} ({res['size_m'] * 100:.1f} cm): {'ok' if res['success'] else 'FAILED'} "
+              f"({res['successes']} of {res['trials']} placements lifted)")
     for img in r.images:
         print(f"  image: {img}")
     for reason in r.reasons:

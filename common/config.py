@@ -207,6 +207,10 @@ class ModelConfig:
     min_surface_height: float = 0.0
     """Learned policies only pick cells higher than this (m); 0 = any observed cell of the action
     square (the paper's valid mask)."""
+    scene_widths: tuple[int, ...] = (16, 32, 64)
+    """Output channels of the scene encoder's 3-D conv stages (stride 2 from the second on)."""
+    gripper_widths: tuple[int, ...] = (16, 64)
+    """Output channels of the gripper encoder's 3-D conv stages (stride 2 from the second on)."""
 
 
 @dataclass

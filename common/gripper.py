@@ -52,8 +52,10 @@ FAMILIES = ("2-finger", "3-finger", "multi")
 """Gripper families by number of fingers."""
 SPLITS = ("train", "test")
 """Data splits; every real gripper is in the test split."""
-COUPLING_MODES = ("mimic", "target")
-"""mimic: follow the driver's measured position; target: follow the driver's commanded target."""
+COUPLING_MODES = ("mimic", "measured", "target")
+"""How a coupled joint follows its driver in PyBullet. mimic: a JOINT_GEAR constraint (rigid,
+two-way linkage); measured: a per-step position target at the driver's measured position;
+target: a per-step position target at the driver's commanded target (adaptive fingers)."""
 FORMAT_VERSION = "5"
 """Bumped whenever the processed-URDF layout changes, so cached files are rebuilt."""
 CACHE_ENV = "ADAGRASP_CACHE"

@@ -56,8 +56,8 @@ VARIANTS = ("adagrasp", "init-only", "scene-only")
 """Model variants (``model.variant``)."""
 _KERNEL_CACHE_SIZE = 64
 """Gripper kernel sets kept per model (least recently used dropped first)."""
-_TAPS_CACHE_SIZE = 256
-"""Rotation sampling tables kept per model."""
+_TAPS_CACHE_SIZE = 96
+"""Rotation sampling tables kept per model (R rotations and their inverses on two grids fit)."""
 
 
 _FUSED = getattr(torch.ops.mkldnn, "_convolution_pointwise", None) if torch.backends.mkldnn.is_available() else None
@@ -246,7 +246,7 @@ class Rotator:
         hit = self._taps.get(key)
         if hit is None:
             idx, w = rotation_taps(float(theta), nx, ny, zeros)
-            hit = (torch.from_numpy(idx).to(device), torch.from_numpy(w).to(device))
+            hit = (torch.from_numpy(idx.astype(np.int32)).to(device), torch.from_numpy(w).to(device))
             self._taps[key] = hit
             while len(self._taps) > _TAPS_CACHE_SIZE:
                 self._taps.popitem(last=False)
@@ -315,7 +315,7 @@ class AdaGraspNet(nn.Module):
             if n % ratio:
                 raise NetworkConfigError(f"scene_grid.{name}: {n} cells is not a multiple of {ratio}")
         self.feature_shape = (X // ratio, Y // ratio)
-        self.scene_encoder = Encoder(2, (16, 32, 64), up, Z // ratio, 64, self.channels, True, "scene_grid")
+        self.scene_encoder = Encoder(2, tuple(model.scene_widths), up, Z // ratio, 64, self.channels, True, "scene_grid")
 
         self.kernel_size = 0
         if self.variant != "scene-only":
@@ -327,7 +327,7 @@ class AdaGraspNet(nn.Module):
             if gx % g or gz % g:
                 raise NetworkConfigError(f"gripper_grid.shape: {self.gripper_shape} is not a multiple of {g}")
             cin = 2 if self.variant == "adagrasp" else 1
-            self.gripper_encoder = Encoder(cin, (16, 64), gdown, gz // g, 64, self.channels, False, "gripper_grid")
+            self.gripper_encoder = Encoder(cin, tuple(model.gripper_widths), gdown, gz // g, 64, self.channels, False, "gripper_grid")
             self.kernel_size = gx // g
 
         # An even kernel puts the correlation on cell corners, (Fx + 1, Fy + 1) points; an odd one

@@ -324,7 +324,8 @@ class ReplayClient:
     def stats(self) -> dict:
         """Per-shard counters and totals, plus this client's counters."""
         per = self._backend.get([self._backend.submit(s, "stats") for s in self._shards])
-        total = {k: sum(d[k] for d in per) for k in ("visible", "successes", "failures", "lost", "corrupt", "corrupt_skipped", "duplicates_skipped")}
+        keys = ("visible", "successes", "failures", "lost", "corrupt", "corrupt_skipped", "duplicates_skipped")
+        total = {k: sum(d[k] for d in per) for k in keys}
         return {"total": total, "shards": per, "client": dict(self.counters), "inflight": len(self._pending)}
 
 

@@ -161,7 +161,9 @@ def format_summary(s: dict) -> str:
     if rate["bins"]:
         lines.append(f"insert rate       {rate['mean_per_min']:.1f} trials/min over {rate['span_s']:.0f} s")
         for b in rate["bins"]:
-            lines.append(f"  {b['start_s']:>10.1f} - {b['end_s']:<10.1f} s {b['trials']:>7} trials {b['per_min']:9.1f}/min")
+            lines.append(
+                f"  {b['start_s']:>10.1f} - {b['end_s']:<10.1f} s {b['trials']:>7} trials {b['per_min']:9.1f}/min"
+            )
     for sh in s["shards"]:
         lines.append(
             f"shard {sh['path']}: {sh['visible']} visible (trials {sh['first']}..{sh['end'] - 1}), "
@@ -219,6 +221,10 @@ def render_trial(path: str | Path, n: int, out: str | Path) -> Path:
     ax = fig.add_subplot(1, 3, 1)
     im = ax.imshow(hm.T, origin="lower", cmap="viridis")
     fig.colorbar(im, ax=ax, label="height (m)")
+    obstacle = trial.observation.obstacle.max(axis=2) > 0.5
+    if obstacle.any():
+        ax.contour(obstacle.T.astype(float), levels=[0.5], colors="orange", linewidths=1.5)
+        ax.plot([], [], color="orange", label="obstacles")
     ax.scatter(cell_x, cell_y, s=2, c="white", alpha=0.5, label="gripper footprint (open)")
     ax.plot([i], [j], "r+", ms=14, mew=2, label="grasp centre")
     ax.plot([i, i + 8 * c], [j, j + 8 * sn], "r-", lw=2)

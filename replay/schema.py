@@ -218,6 +218,7 @@ def max_errors(levels: int) -> dict[str, float]:
 # Metadata
 # --------------------------------------------------------------------------------------
 
+
 def meta_to_json(meta: TrialMeta, where: str) -> str:
     """Exact JSON text of a TrialMeta (floats round-trip bit for bit); one-line error on a bad field."""
     out = {}

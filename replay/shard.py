@@ -246,7 +246,8 @@ class _ChunkIO:
             self.arr[c0:c0 + len(data)] = data
             return
         if len(data) < self.rows:
-            pad = np.full((self.rows - len(data),) + self.inner, self.arr.fill_value, dtype=object if self.string else self.dtype)
+            dtype = object if self.string else self.dtype
+            pad = np.full((self.rows - len(data),) + self.inner, self.arr.fill_value, dtype=dtype)
             data = np.concatenate([np.asarray(data, dtype=pad.dtype), pad])
         if self.string:
             payload = self._vlen.encode(np.asarray(data, dtype=object))
@@ -367,12 +368,18 @@ class ReplayShard:
             raise ReplaySchemaError(f"{p}/zarr.json: cannot open group ({_chunk_error(e)})") from None
         attrs = group.attrs.get(ATTR_KEY)
         if not isinstance(attrs, dict):
-            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}: missing (not a replay shard, or creation was cut off)")
+            raise ReplaySchemaError(
+                f"{p}: attributes.{ATTR_KEY}: missing (not a replay shard, or creation was cut off)"
+            )
         version = attrs.get("schema_version")
         if version != SCHEMA_VERSION:
-            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.schema_version: expected {SCHEMA_VERSION}, got {version!r}")
+            raise ReplaySchemaError(
+                f"{p}: attributes.{ATTR_KEY}.schema_version: expected {SCHEMA_VERSION}, got {version!r}"
+            )
         if attrs.get("kind") != SHARD_KIND:
-            raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.kind: expected {SHARD_KIND!r}, got {attrs.get('kind')!r}")
+            raise ReplaySchemaError(
+                f"{p}: attributes.{ATTR_KEY}.kind: expected {SHARD_KIND!r}, got {attrs.get('kind')!r}"
+            )
         self.attrs = dict(attrs)
         self.capacity = int(attrs["capacity"])
         self.slots = int(attrs["slots"])
@@ -618,7 +625,9 @@ class ReplayShard:
         if rec.levels != self.levels:
             raise ReplayInputError(f"{w}: levels: encoded with {rec.levels}, shard {self.path} stores {self.levels}")
         if rec.tsdf.shape != (x, y, z) or rec.tsdf.dtype != np.int8:
-            raise ReplayInputError(f"{w}: observation.tsdf: shape {rec.tsdf.shape}, shard {self.path} stores {(x, y, z)}")
+            raise ReplayInputError(
+                f"{w}: observation.tsdf: shape {rec.tsdf.shape}, shard {self.path} stores {(x, y, z)}"
+            )
         if rec.obstacle is not None and (rec.obstacle.shape != (x, y, z) or rec.obstacle.dtype != np.int8):
             raise ReplayInputError(f"{w}: observation.obstacle: shape {rec.obstacle.shape}, expected {(x, y, z)}")
         if rec.surface.shape != (2, x, y) or rec.surface.dtype != np.int16:

@@ -100,9 +100,11 @@ def synthetic_gripper_encoding(
     max_half_gap = 0.04 * scale
 
     def hand(gap: float) -> np.ndarray:
-        palm = _box_sdf(pts, (0.0, 0.0, finger_len + palm_h / 2), (max_half_gap + thick, finger_width * scale, palm_h / 2))
+        palm_half = (max_half_gap + thick, finger_width * scale, palm_h / 2)
+        palm = _box_sdf(pts, (0.0, 0.0, finger_len + palm_h / 2), palm_half)
+        finger_half = (thick / 2, finger_width * scale / 2, finger_len / 2)
         fingers = [
-            _box_sdf(pts, (sx * (gap + thick / 2), 0.0, finger_len / 2), (thick / 2, finger_width * scale / 2, finger_len / 2))
+            _box_sdf(pts, (sx * (gap + thick / 2), 0.0, finger_len / 2), finger_half)
             for sx in (-1.0, 1.0)
         ]
         d = np.minimum(palm, np.minimum(*fingers))
@@ -142,14 +144,18 @@ def synthetic_trial(
     if encoding is None:
         encoding = synthetic_gripper_encoding(gripper_grid, openings, scale)
     x, y, _ = scene_grid.shape
-    action = (int(rng.integers(x)), int(rng.integers(y)), int(rng.integers(rotations)), int(rng.integers(len(openings))))
+    action = (
+        int(rng.integers(x)), int(rng.integers(y)), int(rng.integers(rotations)), int(rng.integers(len(openings)))
+    )
     scene = "single" if n_objects == 1 and not n_obstacles else ("obstacle" if n_obstacles else "multi")
     meta = TrialMeta(
         episode_id=episode_id,
         step=step,
         scene=scene,
         object_set="synthetic",
-        object_ids=tuple(f"synthetic/{SHAPES[int(i)]}_{int(i)}" for i in rng.integers(0, 3, size=n_objects + n_obstacles)),
+        object_ids=tuple(
+            f"synthetic/{SHAPES[int(i)]}_{int(i)}" for i in rng.integers(0, 3, size=n_objects + n_obstacles)
+        ),
         gripper=gripper,
         gripper_scale=scale,
         openings=tuple(openings),

@@ -33,7 +33,9 @@ from replay.synthetic import synthetic_gripper_encoding, synthetic_trial
 
 def tree_digest(path: Path) -> dict[str, str]:
     return {
-        str(p.relative_to(path)): hashlib.sha1(p.read_bytes()).hexdigest() for p in sorted(path.rglob("*")) if p.is_file()
+        str(p.relative_to(path)): hashlib.sha1(p.read_bytes()).hexdigest()
+        for p in sorted(path.rglob("*"))
+        if p.is_file()
     }
 
 
@@ -137,14 +139,17 @@ def test_obstacle_chunk_only_where_there_is_an_obstacle(tmp_path):
     assert with_obstacle.observation.obstacle.any()
     shard.insert(with_obstacle)
     shard.insert(make_trial(cfg, 1))
-    assert _chunk_file(tmp_path / "s", "obstacle", 0).exists() and not _chunk_file(tmp_path / "s", "obstacle", 1).exists()
+    assert _chunk_file(tmp_path / "s", "obstacle", 0).exists()
+    assert not _chunk_file(tmp_path / "s", "obstacle", 1).exists()
     got = shard.get_trial(0)
     assert np.abs(got.observation.obstacle - with_obstacle.observation.obstacle).max() <= 1 / 254 + 1e-7
-    shard.insert(make_trial(cfg, 2))  # reuses slot 0: the old obstacle chunk must go
+    shard.insert(make_trial(cfg, 2))
+    shard.insert(make_trial(cfg, 3))  # ring of 2 + 1 slots: trial 3 reuses slot 0, the old obstacle chunk must go
+    assert shard.visible_ids().tolist() == [2, 3]
     assert not _chunk_file(tmp_path / "s", "obstacle", 0).exists()
-    assert not shard.get_trial(2).observation.obstacle.any()
+    assert not shard.get_trial(3).observation.obstacle.any()
     g = zarr.open_group(str(tmp_path / "s"), mode="r")
-    assert not g["obstacle"][0].any() and int(g["obstacle_voxels"][0]) == 0
+    assert not g["obstacle"][0].any() and int(g["obstacle_voxels"][0]) == 0 and int(g["trial_id"][0]) == 3
 
 
 def test_fifo_across_shards_keeps_the_newest(tmp_path):
@@ -188,7 +193,11 @@ def test_gripper_table_stored_once_and_refcounted(tmp_path):
             assert (old_key, 1) not in shard._row_of
         for t in visible:
             assert shard.get_trial(int(t)).gripper_encoding.shape == (2, 16, 16, 8)
-    assert shard._table["gripper_table_key"][shared] != old_key  # the freed row was reused
+    assert shared in shard._free_rows  # freed once its last user left
+    lowest_free = min(shard._free_rows)
+    inserted[10] = make_trial(cfg, 10, rng)
+    shard.insert(inserted[10])
+    assert int(shard.column("gripper_row", [10])[0]) == lowest_free  # free rows are reused, lowest first
     # after eviction and row reuse every trial still reads its own encoding
     for t in shard.visible_ids():
         got, want = shard.get_trial(int(t)), inserted[int(t)]

@@ -29,7 +29,8 @@ from replay.shard import ReplayShard
 from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
 
-path, capacity, start, count, stall_at = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+path = sys.argv[1]
+capacity, start, count, stall_at = (int(v) for v in sys.argv[2:6])
 cfg = tiny_cfg(capacity=capacity, chunk=4)
 shard = ReplayShard(path, cfg)
 real_commit = shard._write_commit
@@ -94,13 +95,13 @@ def check_every_visible_trial(path: Path, cfg) -> list[int]:
 def test_kill9_between_data_and_commit_hides_the_half_written_trial(tmp_path):
     cfg = tiny_cfg(capacity=6, chunk=4)
     path = tmp_path / "s"
-    # trial 8 is written into the slot of trial 2 (ring of 6): eviction commit, data, then the kill
+    # trial 8 goes to slot 8 % 7 = 1 (ring of 6 + 1 slots), over trial 1; killed after its data, before its commit
     proc = spawn_writer(path, 6, 0, -1, stall_at=9)
     wait_for(proc, "DATA_WRITTEN 8")
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(30)
     episodes = check_every_visible_trial(path, cfg)
-    assert episodes == [3, 4, 5, 6, 7]  # trial 2 was evicted first, trial 8 never became visible
+    assert episodes == [2, 3, 4, 5, 6, 7]  # trial 8 never became visible, trial 2 was not evicted
     # the next writer reuses the slot and goes on
     proc = spawn_writer(path, 6, 100, 3)
     assert wait_for(proc, "OPEN").split()[1] == "8"

@@ -47,7 +47,8 @@ def test_inspect_reports_counts_rates_bytes_and_schema(replay_root, tmp_path, ca
     s = json.loads(out.read_text())
     assert s["trials"] == 12 and s["schema_version"] == 1 and len(s["shards"]) == 2
     assert s["success_rate"] == pytest.approx(4 / 12)
-    assert s["by_gripper"]["wsg_50"]["trials"] == 4 and s["by_gripper"]["wsg_50"]["success_rate"] == pytest.approx(2 / 4)
+    assert s["by_gripper"]["wsg_50"]["trials"] == 4
+    assert s["by_gripper"]["wsg_50"]["success_rate"] == pytest.approx(2 / 4)
     assert s["by_gripper"]["parallel_jaw"]["trials"] == 8
     assert s["by_scene"]["single"]["trials"] == 6 and s["by_scene"]["multi"]["trials"] == 6
     assert set(s["by_policy_version"]) == {"0", "1"} and s["by_object_set"]["synthetic"]["trials"] == 12

@@ -13,25 +13,34 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   seeded model (see :func:`rotation_consistency`), per mode: mean |p(rot90 scene, k + R/4) -
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
   within one cell of where the original map's argmax cell turns to;
-- ``threads``: torch intra-op threads; ``device``.
+- ``kernel_option_accuracy`` (with ``--accuracy-steps N``): both rotation modes trained N steps
+  on the same synthetic grasping task (:func:`synth_accuracy`) and scored on held-out scenes;
+- ``threads``: torch intra-op threads; ``device``; ``thp``: whether torch's CPU allocator was
+  asked for transparent huge pages (``--thp`` sets ``THP_MEM_ALLOC_ENABLE=1`` before torch
+  loads: large activations then cost far fewer page faults); ``load_avg``: the machine's 1-minute
+  load average before and after (the figures are only comparable on an otherwise idle machine).
 
 Usage::
 
     python tests/bench/bench_model.py                 # both scales, 3 repeats
-    python tests/bench/bench_model.py --repeats 5 --threads 2 --skip-paper-train
+    python tests/bench/bench_model.py --repeats 5 --threads 2 --thp --skip-paper-train
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
+if __name__ == "__main__" and "--thp" in sys.argv:
+    os.environ["THP_MEM_ALLOC_ENABLE"] = "1"  # read by torch's CPU allocator on its first allocation
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -146,6 +155,139 @@ def rotation_consistency(cfg, seeds: int = 2) -> dict:
     return out
 
 
+# ---------------------------------------------------------------------------------------
+# Accuracy of the kernel-rotation option on a synthetic grasping task
+# ---------------------------------------------------------------------------------------
+
+SYNTH = [
+    "scene_grid.x_range=[-0.064, 0.064]",
+    "scene_grid.y_range=[-0.064, 0.064]",
+    "scene_grid.z_range=[0.0, 0.064]",
+    "gripper_grid.shape=[16, 16, 8]",
+    "model.rotations=8",
+]
+"""Synthetic task grid: 32 x 32 x 16 scene cells at 4 mm, 16 x 16 x 8 gripper cells at 8 mm, R = 8."""
+SYNTH_APERTURES = (0.03, 0.06)
+"""Finger gaps (m) of the synthetic parallel-jaw gripper at its two openings."""
+
+
+def synth_gripper(cfg) -> torch.Tensor:
+    """(2, 2, gX, gY, gZ) float32 TSDF-like encoding of a parallel-jaw gripper: two 8 mm fingers
+    along x at +-gap/2 (below the TCP) and a palm above, at each aperture; channel 1 closed."""
+    g = cfg.gripper_grid
+    gx, gy, gz = g.shape
+    pts_x = (np.arange(gx) + 0.5 - gx / 2) * g.voxel_size
+    pts_y = (np.arange(gy) + 0.5 - gy / 2) * g.voxel_size
+    pts_z = (np.arange(gz) + 0.5) * g.voxel_size - g.tcp_height
+    X, Y, Z = np.meshgrid(pts_x, pts_y, pts_z, indexing="ij")
+
+    def vol(gap):
+        finger = (np.abs(np.abs(X) - gap / 2 - 0.004) <= 0.004) & (np.abs(Y) <= 0.012) & (Z <= 0.0)
+        palm = (np.abs(X) <= gap / 2 + 0.008) & (np.abs(Y) <= 0.012) & (Z > 0.0)
+        return np.where(finger | palm, -1.0, 1.0)
+
+    closed = vol(0.0)
+    return torch.from_numpy(np.stack([np.stack([vol(a), closed]) for a in SYNTH_APERTURES]).astype(np.float32))
+
+
+def synth_scene(cfg, rng) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+    """One random box (yaw any, 8-40 mm sides, 20-50 mm tall) near the centre.
+
+    Returns the scene (1, 2, X, Y, Z) float32, labels (S, R, X, Y) bool -- a grasp succeeds when
+    the TCP is over the box (2 mm inside its outline) and both jaws, at +-gap/2 along the
+    closing direction, clear the box by 2 mm -- and the cells within 16 mm of the box (X, Y)
+    bool, where the hard failures are."""
+    from scipy.ndimage import binary_dilation
+
+    grid = cfg.scene_grid
+    X, Y, Z = grid.shape
+    v = grid.voxel_size
+    length, width = rng.uniform(0.008, 0.040, size=2)
+    height = rng.uniform(0.02, 0.05)
+    yaw = rng.uniform(0, np.pi)
+    cx, cy = rng.uniform(-0.03, 0.03, size=2)
+    xs = grid.x_range[0] + (np.arange(X) + 0.5) * v
+    ys = grid.y_range[0] + (np.arange(Y) + 0.5) * v
+    px, py = np.meshgrid(xs - cx, ys - cy, indexing="ij")
+    u = np.cos(yaw) * px + np.sin(yaw) * py
+    w = -np.sin(yaw) * px + np.cos(yaw) * py
+    inside = (np.abs(u) <= length / 2) & (np.abs(w) <= width / 2)
+    heights = np.where(inside, height, 0.0)
+    zs = grid.z_range[0] + (np.arange(Z) + 0.5) * v
+    tsdf = np.clip((zs[None, None, :] - heights[:, :, None]) / grid.truncation, -1, 1)
+    scene = torch.from_numpy(np.stack([tsdf, np.zeros_like(tsdf)])[None].astype(np.float32))
+    core = (np.abs(u) <= length / 2 - 0.002) & (np.abs(w) <= width / 2 - 0.002)
+    R = cfg.model.rotations
+    labels = np.zeros((len(SYNTH_APERTURES), R, X, Y), dtype=bool)
+    for k in range(R):
+        theta = 2 * np.pi * k / R
+        delta = theta - yaw
+        across = abs(length * np.cos(delta)) + abs(width * np.sin(delta))  # box width across the jaws
+        offset = np.abs(np.cos(theta) * px + np.sin(theta) * py)  # TCP from the box centre along the jaws
+        for s, gap in enumerate(SYNTH_APERTURES):
+            labels[s, k] = core & (across / 2 + offset < gap / 2 - 0.002)
+    near = binary_dilation(inside, iterations=4)
+    return scene, labels, near
+
+
+def synth_accuracy(steps: int, eval_scenes: int = 20, seed: int = 0) -> dict:
+    """Train the scene- and kernel-rotation models on the same synthetic data; held-out metrics.
+
+    Each step: batch 8, half successes and half failures drawn from the label maps of fresh
+    scenes (the paper's balanced sampling), Adam at the paper's learning rate. Metrics on
+    ``eval_scenes`` held-out scenes: ``top1``, the fraction whose best-scored grasp over the
+    cells near the box is a success; ``balanced_acc``, mean of the accuracies on successes and
+    on failures near the box (threshold 0.5)."""
+    out = {"steps": steps, "eval_scenes": eval_scenes, "grid": "32x32x16 @ 4 mm, R=8"}
+    for mode in ("scene", "kernel"):
+        cfg = load_config("default", SYNTH + [f"model.rotate={mode}"])
+        torch.manual_seed(seed)
+        model = build_model(cfg).train()
+        opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
+        grip = synth_gripper(cfg)
+        rng = np.random.default_rng(seed)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            scenes, grips, actions, labels = [], [], [], []
+            while len(scenes) < 8:
+                scene, lab, near = synth_scene(cfg, rng)
+                want = len(scenes) % 2 == 0
+                cand = np.argwhere(lab if want else ~lab & near)
+                if len(cand) == 0:
+                    continue
+                s, k, i, j = cand[rng.integers(len(cand))]
+                scenes.append(scene)
+                grips.append(grip[s : s + 1])
+                actions.append((i, j, k, s))
+                labels.append(int(want))
+            action = torch.tensor(actions)
+            logits = model.forward_train(torch.cat(scenes), torch.cat(grips), action[:, 2])
+            loss = model.loss(logits, action, torch.tensor(labels))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        train_s = time.perf_counter() - t0
+        model.eval()
+        erng = np.random.default_rng(10_000 + seed)
+        top1, acc_pos, acc_neg = [], [], []
+        for _ in range(eval_scenes):
+            scene, lab, near = synth_scene(cfg, erng)
+            probs = model.predict(scene, [grip])[0].numpy()  # (S, R, X, Y)
+            region = np.broadcast_to(near, probs.shape)
+            best = np.unravel_index(int(np.argmax(np.where(region, probs, -1))), probs.shape)
+            top1.append(bool(lab[best]))
+            if lab.any():
+                acc_pos.append(float((probs[lab] > 0.5).mean()))
+            neg = region & ~lab
+            acc_neg.append(float((probs[neg] <= 0.5).mean()))
+        out[mode] = {
+            "top1": float(np.mean(top1)),
+            "balanced_acc": 0.5 * (float(np.mean(acc_pos)) + float(np.mean(acc_neg))),
+            "train_s": train_s,
+        }
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
@@ -153,12 +295,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-paper", action="store_true", help="skip every paper-scale measurement")
     ap.add_argument("--skip-paper-train", action="store_true", help="skip the paper-scale training step")
     ap.add_argument("--skip-kernel", action="store_true", help="skip the kernel-rotation option")
+    ap.add_argument("--thp", action="store_true", help="transparent huge pages for torch's CPU allocator")
+    ap.add_argument("--accuracy-steps", type=int, default=0,
+                    help="train scene- and kernel-rotation models this many steps on the synthetic task (0: skip)")
+    ap.add_argument("--only-accuracy", action="store_true", help="run only the synthetic accuracy comparison")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.only_accuracy:
+        print(json.dumps({"kernel_option_accuracy": synth_accuracy(args.accuracy_steps or 300)}))
+        return 0
     default = load_config("default")
     paper = load_config("paper")
-    out = {"params": count_parameters(build_model(default)), "threads": torch.get_num_threads(), "device": "cpu"}
+    out = {
+        "params": count_parameters(build_model(default)),
+        "threads": torch.get_num_threads(),
+        "device": "cpu",
+        "thp": os.environ.get("THP_MEM_ALLOC_ENABLE") == "1",
+        "load_avg_before": os.getloadavg()[0],
+    }
     out["infer_default_s"], out["gripper_kernels_default_s"] = bench_infer(default, args.repeats)
     out["train_step_default_s"] = bench_train(default, args.repeats)
     if not args.skip_kernel:
@@ -171,6 +326,9 @@ def main(argv: list[str] | None = None) -> int:
             out["train_step_paper_s"] = bench_train(paper, args.repeats)
     if not args.skip_kernel:
         out["kernel_rotation_consistency"] = rotation_consistency(None)
+    if args.accuracy_steps > 0:
+        out["kernel_option_accuracy"] = synth_accuracy(args.accuracy_steps)
+    out["load_avg_after"] = os.getloadavg()[0]
     print(json.dumps(out))
     return 0
 
