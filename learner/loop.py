@@ -72,8 +72,9 @@ class LearnerProcess:
         """Trials ever committed to the replay."""
         return total_inserted(self.replay)
 
-    def train(self, max_steps: int, publish: bool = True, idle_wait_s: float = 0.0) -> dict:
-        """Up to ``max_steps`` steps as the rate limiter allows; a new weights version when due.
+    def train(self, max_steps: int, idle_wait_s: float = 0.0, force_publish: bool = False) -> dict:
+        """Up to ``max_steps`` steps as the rate limiter allows; a new weights version when due
+        (or always, with ``force_publish``: the first call of a run, fresh or resumed).
 
         When no step is allowed yet, waits up to ``idle_wait_s`` for new trials before returning.
         Returns a stats dict; ``weights`` holds ``(version, [ref or state])`` when one was published.
@@ -93,7 +94,7 @@ class LearnerProcess:
             "pos_score": s.pos_score, "neg_score": s.neg_score, "inserted": inserted, "ran": steps,
             "weights": None,
         }
-        if publish and (s.version == 0 or self.learner.steps_since_publish >= self.cfg.learner.publish_every):
+        if force_publish or self.learner.steps_since_publish >= self.cfg.learner.publish_every:
             out["weights"] = self.publish()
             out["version"] = self.learner.stats.version
         return out
@@ -227,7 +228,7 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
     actor = GraspActor(cfg, actor_id=0, seed=cfg.run.seed, replay=ReplayClient(shards, cfg, seed=cfg.run.seed + 1))
     progress = Progress(cfg, run_dir, quiet)
     t0 = last_ckpt = time.time()
-    stats = learner.train(0)
+    stats = learner.train(0, force_publish=True)
     version, box = stats["weights"]
     actor.set_weights(version, box[0])
     published = 1
@@ -317,7 +318,7 @@ def run_distributed(
     ]
     progress = Progress(cfg, run_dir, quiet, dashboard)
     replay = ReplayClient(shards, cfg, seed=cfg.run.seed + 2)  # the driver's view: counts only
-    stats = ray.get(learner.train.remote(0))
+    stats = ray.get(learner.train.remote(0, force_publish=True))
     version, box = stats["weights"]
     published, restarts = 1, 0
     next_episode = [0] * n_actors
