@@ -89,6 +89,7 @@ class BulletGripper:
                 self._gears.append(gear)
         self._geared = {c.joint for c in spec.couplings if c.mode == "mimic" and abs(c.multiplier) > 1e-9}
         self._model: GripperModel | None = None
+        self._reach: dict[float, float] = {}
         self.reset(Transform.from_yaw(0.0, (0.0, 0.0, 2.0)), 1.0)
 
     # ---------------------------------------------------------------- pose
@@ -177,17 +178,29 @@ class BulletGripper:
         """Metres between the finger pads: the diameter of the widest cylinder about the approach
         axis that no finger surface enters, from the fingertips up to ``aperture_band`` above the TCP
         (see :func:`common.gripper.aperture_from_points`)."""
-        if self._model is None:
-            self._model = GripperModel(self.spec, self.scale)
         T_tcp_world = self.tcp_pose().inverse()
         pts = []
-        for link, local in self._model.finger_samples().items():
+        for link, local in self.model().finger_samples().items():
             if link == self.spec.cut_link:
                 continue
             st = p.getLinkState(self.body_id, self._link[link], computeForwardKinematics=True, physicsClientId=self.client)
             T = T_tcp_world * Transform.from_quat(st[5], st[4])
             pts.append(T.apply(local))
         return aperture_from_points(np.concatenate(pts), self.spec.aperture_band * self.scale)
+
+    def model(self) -> GripperModel:
+        """The gripper's kinematic model (TCP frame) at this scale, built once."""
+        if self._model is None:
+            self._model = GripperModel(self.spec, self.scale)
+        return self._model
+
+    def reach(self, opening: float) -> float:
+        """Metres the fingers reach below the TCP at their lowest while closing from ``opening``
+        (:meth:`GripperModel.sweep_depth` of the exact finger geometry), cached per opening."""
+        key = round(float(opening), 6)
+        if key not in self._reach:
+            self._reach[key] = self.model().sweep_depth(max_opening=key)
+        return self._reach[key]
 
     def remove(self) -> None:
         """Remove the constraints and the body from the client."""

@@ -8,9 +8,9 @@ theta), and index s into the episode's ``openings`` tuple.
 Primitive (DESIGN.md section 3): the TCP goes above (x, y) at yaw theta with the chosen opening,
 descends at ``sim.tcp_speed`` until the gripper first touches anything or the TCP reaches the
 grasp height (top surface at (i, j) from the heightmap minus ``sim.grasp_depth``, clipped to the
-table: the gripper's lowest point, open or closed, stays ``sim.table_clearance`` above it, so
+table: the fingers' lowest point, open or closing, stays ``sim.table_clearance`` above it, so
 fingertips are not dragged along the table while they close), closes fully until the fingers
-stop (or ``sim.close_max_s``), lifts to
+have got moving and stopped again (or ``sim.close_max_s``), lifts to
 ``sim.lift_to`` and holds still for ``sim.hold_s``. The label is True when exactly one target's
 base ends above ``sim.lift_height`` and no obstacle's does. Lifted objects are then removed, as
 are objects that left the scene grid.
@@ -47,6 +47,11 @@ _CLOSE_STILL_M = 1e-4
 """Prismatic joint travel (m, at gripper scale 1) below which a finger counts as stopped."""
 _CLOSE_STILL_RAD = 2e-3
 """Revolute joint travel (rad) below which a finger counts as stopped."""
+_CLOSE_STARTED = 10.0
+"""The stop test applies once some finger travelled this many times its threshold from where
+closing began (or after ``_CLOSE_MIN_S``): fingers still speeding up from rest are not stopped."""
+_CLOSE_MIN_S = 0.2
+"""Simulated seconds after which the stop test applies even if no finger got moving (blocked)."""
 _ARRIVE_TOL = 0.001
 """The TCP has arrived at the grasp height when it is this close (m)."""
 _ARRIVE_MAX_S = 0.25
@@ -124,15 +129,11 @@ def grasp_pose(sim: Simulation, action, openings, heightmap: np.ndarray) -> tupl
 
 
 def gripper_reach(sim: Simulation, gripper: BulletGripper, opening: float) -> float:
-    """How far (m) the gripper reaches below its TCP while it closes from ``opening``: the lowest
-    point of its bounds at ``opening``, half of it and closed (the gripper is left parked)."""
-    park = sim.park_pose()
-    reach = 0.0
-    for o in (opening, opening / 2, 0.0):
-        gripper.reset(park, o)
-        lo, _ = sim.body_aabb(gripper.body_id)
-        reach = max(reach, float(park.translation[2] - lo[2]))
-    return reach
+    """How far (m) the fingers reach below the TCP at their lowest while they close from
+    ``opening``: swept over the openings from ``opening`` to closed on the exact finger geometry
+    (PyBullet's bounds of a turned link are those of its turned local box, centimetres too low for
+    linkage fingers, which would hold the fingers above short objects)."""
+    return gripper.reach(opening)
 
 
 def _still_thresholds(gripper: BulletGripper) -> tuple[list[str], np.ndarray]:
@@ -205,13 +206,18 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
     # close until the fingers stop
     gripper.close()
     joints, still = _still_thresholds(gripper)
-    history: list[np.ndarray] = []
-    for _ in range(int(math.ceil(cfg.close_max_s / dt))):
+    q0 = gripper.joint_state()
+    history: list[np.ndarray] = [np.array([q0[n] for n in joints])]
+    started = False
+    for k in range(1, int(math.ceil(cfg.close_max_s / dt)) + 1):
         _advance(sim, gripper)
         steps += 1
         q = gripper.joint_state()
         history.append(np.array([q[n] for n in joints]))
-        if len(history) > _CLOSE_STILL_STEPS and np.all(np.abs(history[-1] - history[-1 - _CLOSE_STILL_STEPS]) < still):
+        started = started or bool(np.any(np.abs(history[-1] - history[0]) > _CLOSE_STARTED * still))
+        if (started or k * dt >= _CLOSE_MIN_S) and len(history) > _CLOSE_STILL_STEPS and np.all(
+            np.abs(history[-1] - history[-1 - _CLOSE_STILL_STEPS]) < still
+        ):
             break
 
     # lift; end early once the gripper has left every object behind

@@ -746,15 +746,16 @@ class GripperModel:
         poses = self.link_poses(opening)
         return {k: v @ poses[k][:3, :3].T + poses[k][:3, 3] for k, v in self.finger_samples().items()}
 
-    def sweep_depth(self, min_aperture: float = 0.0, steps: int = 21) -> float:
+    def sweep_depth(self, min_aperture: float = 0.0, steps: int = 21, max_opening: float = 1.0) -> float:
         """Metres the finger geometry reaches below the TCP (along the approach) at its lowest over
-        the openings whose aperture is at least ``min_aperture`` (m): a TCP held this high above a
-        table keeps the fingers off it while they close on an object that wide. Needs frame="tcp"."""
+        the openings up to ``max_opening`` whose aperture is at least ``min_aperture`` (m): a TCP
+        held this high above a table keeps the fingers off it while they close from ``max_opening``
+        on an object that wide. Needs frame="tcp"."""
         lowest = 0.0
-        for o in np.linspace(0.0, 1.0, steps):
+        for o in np.linspace(0.0, max_opening, steps):
             pts = self.finger_points_posed(float(o))
             allp = np.concatenate(list(pts.values()))
-            if o < 1.0 and aperture_from_points(allp, self.spec.aperture_band * self.scale) < min_aperture:
+            if o < max_opening and aperture_from_points(allp, self.spec.aperture_band * self.scale) < min_aperture:
                 continue
             lowest = min(lowest, float(allp[:, 2].min()))
         return -lowest
