@@ -200,7 +200,10 @@ class ModelConfig:
     correlation: str = "fft"
     """How the cross-correlation is computed: fft (real FFTs) | grouped (one grouped convolution);
     the same sums, up to float rounding."""
-    scene_chunk: int = 4
+    train_stem: bool = True
+    """Train the scene encoder's first conv block; false keeps it at its initialisation (a
+    training speed option: its full-resolution backward pass is skipped; see common/network.py)."""
+    scene_chunk: int = 1
     """Rotated scenes encoded per batch at inference (bounds memory; results do not depend on it)."""
     decoder_chunk: int = 16
     """Score maps decoded per batch at inference (bounds memory; results do not depend on it)."""

@@ -27,7 +27,20 @@ only), ``scene-only`` (no gripper: the scene features go straight to the decoder
 and opening gets the same map). ``model.rotate``: ``scene`` (the paper: the scene is re-encoded
 once per rotation) or ``kernel`` (a speed option: the scene is encoded once and the gripper
 kernel, zero-padded to hold any rotation, is rotated instead; the scene features are not
-rotation equivariant, so its scores differ from ``scene``).
+rotation equivariant, so its scores differ from ``scene``). ``model.train_stem = false`` (a
+training speed option) keeps the scene encoder's first conv block (2 -> 16 channels at full
+resolution, with its batch-norm affine) at its initialisation, which skips its backward pass.
+
+Inference (:meth:`AdaGraspNet.predict`) encodes the scene once per rotation (``model.scene_chunk``
+rotations per batch) and shares it across every opening of every gripper; gripper kernels are
+cached per (key, weights version); the correlation of all rotations with all kernels is one
+call (``model.correlation``: ``fft``, or ``grouped`` -- one grouped convolution, slower on CPU
+for 32 x 32 kernels); the maps are decoded ``model.decoder_chunk`` at a time. Implementation:
+3-D activations are channels-last (oneDNN's fast layout), rotations are a 4-tap bilinear gather
+(``embedding_bag``) that writes that layout directly, and on CPU in eval mode each conv runs with
+its batch norm folded in and its bias, ReLU and residual add fused (oneDNN ``_convolution_pointwise``).
+Training (:meth:`AdaGraspNet.forward_train`) evaluates only each sample's executed rotation and
+opening, as the paper does.
 
 Use::
 
@@ -157,8 +170,15 @@ class Encoder(nn.Module):
         self.out = ConvBlock(2, mid, cout, norm=False)
         self.conv3d.to(memory_format=torch.channels_last_3d)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.conv3d(x.contiguous(memory_format=torch.channels_last_3d))
+    def forward(self, x: torch.Tensor, train_stem: bool = True) -> torch.Tensor:
+        """``train_stem=False`` runs the first conv block without gradients (its weights stay put)."""
+        x = x.contiguous(memory_format=torch.channels_last_3d)
+        if train_stem:
+            y = self.conv3d(x)
+        else:
+            with torch.no_grad():
+                y = self.conv3d[0](x)
+            y = self.conv3d[1:](y)
         b, c, fx, fy, fz = y.shape
         assert fz == self.depth, (y.shape, self.depth)
         # (B, Fx, Fy, Fz * C) is a view of the channels-last volume; as (B, Fz * C, Fx, Fy) it is a
@@ -299,6 +319,7 @@ class AdaGraspNet(nn.Module):
         self.channels = int(model.channels)
         self.scene_chunk = int(model.scene_chunk)
         self.decoder_chunk = int(model.decoder_chunk)
+        self.train_stem = bool(model.train_stem)
         self.scene_shape = tuple(int(v) for v in scene_grid.shape)
         self.gripper_shape = tuple(int(v) for v in gripper_grid.shape)
         if self.variant not in VARIANTS:
@@ -364,7 +385,8 @@ class AdaGraspNet(nn.Module):
         self._kernels.clear()
 
     def train(self, mode: bool = True) -> "AdaGraspNet":
-        self.clear_cache()
+        if mode != self.training:
+            self.clear_cache()
         return super().train(mode)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
@@ -406,7 +428,7 @@ class AdaGraspNet(nn.Module):
         """Scene (B, 2, X, Y, Z), rotated by ``theta`` (see :meth:`rotate_scene`) unless None -> (T, C, Fx, Fy)."""
         if theta is not None:
             scene = self.rotate_scene(scene, theta)
-        return self.scene_encoder(scene)
+        return self.scene_encoder(scene, self.train_stem)
 
     def encode_gripper(self, gripper: torch.Tensor) -> torch.Tensor:
         """Gripper TSDFs (N, 2, gX, gY, gZ) -> kernels (N, C, K, K)."""

@@ -134,7 +134,7 @@ class LearnedPolicy:
             raise PolicyError(f"mode: expected one of {list(MODES)}, got {mode!r}")
         if not 0.0 <= epsilon <= 1.0:
             raise PolicyError(f"epsilon: expected a value in [0, 1], got {epsilon!r}")
-        self.model = model.eval()
+        self.model = model.eval() if model.training else model
         self.cfg = cfg
         self.mode = mode
         self.epsilon = float(epsilon)

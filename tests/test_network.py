@@ -364,3 +364,23 @@ def test_fused_inference_kernels_match_the_plain_path(monkeypatch):
     model.train()
     logits = model.forward_train(scene, gripper[:1], torch.tensor([1]))
     assert logits.requires_grad
+
+
+def test_frozen_stem_trains_everything_but_the_first_block():
+    cfg, model = small_model("model.train_stem=false")
+    model.train()
+    stem = model.scene_encoder.conv3d[0]
+    before = stem.norm.running_mean.clone()
+    scene = random_scene(cfg, 3)
+    logits = model.forward_train(scene, random_gripper(cfg, 1, 3), torch.tensor([1]))
+    model.loss(logits, torch.tensor([[4, 5, 1, 0]]), torch.tensor([1])).backward()
+    assert stem.conv.weight.grad is None and stem.norm.weight.grad is None
+    assert float(model.scene_encoder.conv3d[1].conv.weight.grad.abs().sum()) > 0
+    assert not torch.equal(stem.norm.running_mean, before)  # batch statistics still tracked
+    # the same weights give the same scores whichever way the stem is trained
+    _, trained = small_model()
+    trained.load_state_dict(model.state_dict())
+    model.eval()
+    trained.eval()
+    grip = random_gripper(cfg, 1, 4)
+    assert torch.equal(model.predict(scene, [grip]), trained.predict(scene, [grip]))

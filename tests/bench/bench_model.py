@@ -13,8 +13,10 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   seeded model (see :func:`rotation_consistency`), per mode: mean |p(rot90 scene, k + R/4) -
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
   within one cell of where the original map's argmax cell turns to;
-- ``kernel_option_accuracy`` (with ``--accuracy-steps N``): both rotation modes trained N steps
-  on the same synthetic grasping task (:func:`synth_accuracy`) and scored on held-out scenes;
+- ``train_step_paper_frozen_stem_s``: the paper-scale step with ``model.train_stem=false``;
+- ``speed_option_accuracy`` (with ``--accuracy-steps N``): the paper's model and both speed
+  options trained N steps on the same synthetic grasping task (:func:`synth_accuracy`) and
+  scored on held-out scenes;
 - ``threads``: torch intra-op threads; ``device``; ``thp``: whether torch's CPU allocator was
   asked for transparent huge pages (``--thp`` sets ``THP_MEM_ALLOC_ENABLE=1`` before torch
   loads: large activations then cost far fewer page faults); ``load_avg``: the machine's 1-minute
@@ -230,8 +232,24 @@ def synth_scene(cfg, rng) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
     return scene, labels, near
 
 
-def synth_accuracy(steps: int, eval_scenes: int = 20, seed: int = 0) -> dict:
-    """Train the scene- and kernel-rotation models on the same synthetic data; held-out metrics.
+SPEED_OPTIONS = {"scene": [], "kernel": ["model.rotate=kernel"], "frozen_stem": ["model.train_stem=false"]}
+"""The paper's model and the two speed options, compared by :func:`synth_accuracy`."""
+
+
+def synth_accuracy(steps: int, eval_scenes: int = 30, seeds: int = 3) -> dict:
+    """:func:`synth_accuracy_one` for seeds 0..seeds-1: per option the mean and per-seed metrics."""
+    runs = [synth_accuracy_one(steps, eval_scenes, seed) for seed in range(seeds)]
+    out = {"steps": steps, "eval_scenes": eval_scenes, "seeds": seeds, "grid": runs[0]["grid"]}
+    for mode in SPEED_OPTIONS:
+        out[mode] = {
+            key: float(np.mean([r[mode][key] for r in runs])) for key in ("top1", "balanced_acc", "train_s")
+        }
+        out[mode]["balanced_acc_per_seed"] = [round(r[mode]["balanced_acc"], 4) for r in runs]
+    return out
+
+
+def synth_accuracy_one(steps: int, eval_scenes: int, seed: int) -> dict:
+    """Train the paper's model and each speed option on the same synthetic data; held-out metrics.
 
     Each step: batch 8, half successes and half failures drawn from the label maps of fresh
     scenes (the paper's balanced sampling), Adam at the paper's learning rate. Metrics on
@@ -239,8 +257,8 @@ def synth_accuracy(steps: int, eval_scenes: int = 20, seed: int = 0) -> dict:
     cells near the box is a success; ``balanced_acc``, mean of the accuracies on successes and
     on failures near the box (threshold 0.5)."""
     out = {"steps": steps, "eval_scenes": eval_scenes, "grid": "32x32x16 @ 4 mm, R=8"}
-    for mode in ("scene", "kernel"):
-        cfg = load_config("default", SYNTH + [f"model.rotate={mode}"])
+    for mode, overrides in SPEED_OPTIONS.items():
+        cfg = load_config("default", SYNTH + overrides)
         torch.manual_seed(seed)
         model = build_model(cfg).train()
         opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
@@ -298,12 +316,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--thp", action="store_true", help="transparent huge pages for torch's CPU allocator")
     ap.add_argument("--accuracy-steps", type=int, default=0,
                     help="train scene- and kernel-rotation models this many steps on the synthetic task (0: skip)")
+    ap.add_argument("--accuracy-seeds", type=int, default=3, help="seeds of the synthetic accuracy comparison")
     ap.add_argument("--only-accuracy", action="store_true", help="run only the synthetic accuracy comparison")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.only_accuracy:
-        print(json.dumps({"kernel_option_accuracy": synth_accuracy(args.accuracy_steps or 300)}))
+        print(json.dumps({"speed_option_accuracy": synth_accuracy(args.accuracy_steps or 300, seeds=args.accuracy_seeds)}))
         return 0
     default = load_config("default")
     paper = load_config("paper")
@@ -324,10 +343,11 @@ def main(argv: list[str] | None = None) -> int:
             out["infer_paper_kernel_s"] = bench_infer(load_config("paper", ["model.rotate=kernel"]), args.repeats)[0]
         if not args.skip_paper_train:
             out["train_step_paper_s"] = bench_train(paper, args.repeats)
+            out["train_step_paper_frozen_stem_s"] = bench_train(load_config("paper", ["model.train_stem=false"]), args.repeats)
     if not args.skip_kernel:
         out["kernel_rotation_consistency"] = rotation_consistency(None)
     if args.accuracy_steps > 0:
-        out["kernel_option_accuracy"] = synth_accuracy(args.accuracy_steps)
+        out["speed_option_accuracy"] = synth_accuracy(args.accuracy_steps, seeds=args.accuracy_seeds)
     out["load_avg_after"] = os.getloadavg()[0]
     print(json.dumps(out))
     return 0
