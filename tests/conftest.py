@@ -1,6 +1,7 @@
 """Shared pytest fixtures."""
 
 import pytest
+import torch
 
 from common.config import Config, load_config
 
@@ -15,3 +16,12 @@ def default_cfg() -> Config:
 def paper_cfg() -> Config:
     """The packaged paper-scale config (configs/paper.yaml)."""
     return load_config("paper")
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Small models run faster on one torch thread on a shared machine; restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -27,12 +27,7 @@ SMALL = {
 """A 48 x 48 x 16 scene grid, 16 x 16 x 8 gripper grid, 4 rotations: the same pipeline, fast."""
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def run_cli(argv, tmp_path, name="out"):

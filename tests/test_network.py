@@ -27,13 +27,7 @@ SMALL = [
 """A 32 x 32 x 16 scene grid at 4 mm and a 16 x 16 x 8 gripper grid at 8 mm: fast, same architecture."""
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small models run faster on one thread on a shared machine; restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def small_model(*overrides: str, seed: int = 0):
