@@ -51,12 +51,14 @@ def total_inserted(replay: ReplayClient) -> int:
 class LearnerProcess:
     """The learner with its replay client, checkpointing and weight publishing; local or a Ray actor."""
 
-    def __init__(self, cfg: Config, shards: list, run_dir: str, seed: int) -> None:
+    def __init__(self, cfg: Config, shards: list, run_dir: str, seed: int, torch_threads: int | None = None) -> None:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         device = resolve_device(cfg.learner.device)
         if device.type == "cpu":
-            torch.set_num_threads(max(1, min(os.cpu_count() or 1, 4)))
+            # More torch threads than free cores makes CPU convolutions many times slower
+            # (threads spin-wait on each other), so the driver passes the cores actors leave free.
+            torch.set_num_threads(torch_threads or max(1, min(os.cpu_count() or 1, 4)))
         self.replay = ReplayClient(shards, cfg, seed=seed)
         self.learner = Learner(cfg, self.replay, device=device, seed=seed)
         ckpt = checkpoint_path(self.run_dir)
@@ -311,7 +313,9 @@ def run_distributed(
     gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 and cfg.learner.device != "cpu" else 0
     shards = start_remote_shards(run_dir / "replay", cfg)
     learner_cls = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1)(LearnerProcess)
-    learner = learner_cls.remote(cfg, shards, str(run_dir), cfg.run.seed)
+    # On a local instance the actors take n_actors of this machine's cores; the learner gets the rest.
+    threads = None if address else max(1, (os.cpu_count() or 1) - n_actors)
+    learner = learner_cls.remote(cfg, shards, str(run_dir), cfg.run.seed, threads)
     actor_cls = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)(ActorProcess)
     actors = [
         actor_cls.options(scheduling_strategy="SPREAD").remote(cfg, i, cfg.run.seed, shards) for i in range(n_actors)
