@@ -214,6 +214,9 @@ class ModelConfig:
     """Output channels of the scene encoder's 3-D conv stages (stride 2 from the second on)."""
     gripper_widths: tuple[int, ...] = (16, 64)
     """Output channels of the gripper encoder's 3-D conv stages (stride 2 from the second on)."""
+    decoder_width: int = 64
+    """Decoder channels (its last, finest stage has half); 64 is the reference decoder, fewer is a
+    speed option whose speed and accuracy tests/bench/bench_model.py measures."""
 
 
 @dataclass
@@ -258,10 +261,16 @@ class LearnerConfig:
     """Learner samples (trials) drawn per inserted trial; paper: 32 x 8 samples per 8 trials."""
     min_replay: int = 32
     """Trials in the replay before training starts."""
+    insert_lead: float = 32.0
+    """Trials the actors may insert ahead of the samples-per-insert schedule before they wait for
+    the learner (the actor side of the rate limiter); 0 = actors never wait."""
     publish_every: int = 20
     """Learner steps between weight publications."""
     checkpoint_minutes: float = 5.0
     """Minutes between checkpoints (one more is written at exit)."""
+    keep_snapshots: bool = True
+    """Also keep each periodic checkpoint's weights as RUN/checkpoints/step-NNNNNNN.pt (no optimiser
+    state), for learning curves of greedy success; latest.pt alone is what --resume reads."""
     device: str = "auto"
     """Torch device for the learner: auto | cpu | cuda."""
 
@@ -340,6 +349,7 @@ _RANGES: dict[str, tuple[float, float]] = {
     "model.scene_chunk": (1, 1024),
     "model.decoder_chunk": (1, 100000),
     "model.min_surface_height": (0.0, 1.0),
+    "model.decoder_width": (2, 4096),
     "replay.shards": (1, 1024),
     "replay.capacity": (1, 10**9),
     "replay.chunk_trials": (1, 10**6),
@@ -354,6 +364,7 @@ _RANGES: dict[str, tuple[float, float]] = {
     "learner.epsilon_start": (0.0, 1.0),
     "learner.epsilon_end": (0.0, 1.0),
     "learner.samples_per_insert": (0.0, 1e6),
+    "learner.insert_lead": (0.0, 1e9),
     "learner.publish_every": (1, 10**9),
     "actor.torch_threads": (1, 256),
     "grippers.multi_finger_fraction": (0.0, 1.0),

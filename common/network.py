@@ -12,8 +12,9 @@ Layout (both scales come from the config; ``model.feature_cell`` is where the tw
     cross-correlation: each channel of the scene features with the same channel of the kernel
         (depthwise), divided by K * K; an even K puts the kernel's TCP on a cell corner, so the
         result lives on the (Fx + 1, Fy + 1) lattice of feature-cell corners
-    decoder: conv C->64, residual block, then per factor 2 of feature_cell / voxel_size a conv, an
-        exact bilinear resampling onto the centres of cells half the size and a residual block;
+    decoder: conv C->D (D = model.decoder_width, 64), residual block, then per factor 2 of
+        feature_cell / voxel_size a conv (to D / 2 at the last), an exact bilinear resampling onto
+        the centres of cells half the size and a residual block;
         a 1x1 conv gives two logits per scene cell (channel 0 = failure, 1 = success)
     -> rotated back by -theta_k -> logits (B, 2, X, Y) on the scene grid
 
@@ -357,9 +358,12 @@ class AdaGraspNet(nn.Module):
         self.corners = self.kernel_size > 0 and self.kernel_size % 2 == 0
         self.lattice0 = tuple(n + 1 if self.corners else n for n in self.feature_shape)
 
-        widths = [64] + [64] * max(0, up - 1) + ([32] if up > 0 else [])
-        self.dec_in = ConvBlock(2, self.channels, 64, norm=False)
-        self.dec_res0 = ResBlock2D(64)
+        dw = int(model.decoder_width)
+        if dw < 2 or dw % 2:
+            raise NetworkConfigError(f"model.decoder_width: expected an even number >= 2, got {model.decoder_width!r}")
+        widths = [dw] + [dw] * max(0, up - 1) + ([dw // 2] if up > 0 else [])
+        self.dec_in = ConvBlock(2, self.channels, dw, norm=False)
+        self.dec_res0 = ResBlock2D(dw)
         self.dec_up = nn.ModuleList(ConvBlock(2, widths[u], widths[u + 1]) for u in range(up))
         self.dec_res = nn.ModuleList(ResBlock2D(widths[u + 1]) for u in range(up))
         self.dec_out = nn.Conv2d(widths[-1], 2, kernel_size=1, bias=False)

@@ -232,15 +232,22 @@ def synth_scene(cfg, rng) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
     return scene, labels, near
 
 
-SPEED_OPTIONS = {"scene": [], "kernel": ["model.rotate=kernel"], "frozen_stem": ["model.train_stem=false"]}
-"""The paper's model and the two speed options, compared by :func:`synth_accuracy`."""
+SPEED_OPTIONS = {
+    "scene": ["model.decoder_width=64"],
+    "kernel": ["model.decoder_width=64", "model.rotate=kernel"],
+    "frozen_stem": ["model.decoder_width=64", "model.train_stem=false"],
+    "decoder32": ["model.decoder_width=32"],
+}
+"""The reference model (the paper's scene rotation, 64-channel decoder) and the speed options,
+compared by :func:`synth_accuracy`."""
 
 
-def synth_accuracy(steps: int, eval_scenes: int = 30, seeds: int = 3) -> dict:
+def synth_accuracy(steps: int, eval_scenes: int = 30, seeds: int = 3, options: list[str] | None = None) -> dict:
     """:func:`synth_accuracy_one` for seeds 0..seeds-1: per option the mean and per-seed metrics."""
-    runs = [synth_accuracy_one(steps, eval_scenes, seed) for seed in range(seeds)]
+    options = list(SPEED_OPTIONS) if options is None else options
+    runs = [synth_accuracy_one(steps, eval_scenes, seed, options) for seed in range(seeds)]
     out = {"steps": steps, "eval_scenes": eval_scenes, "seeds": seeds, "grid": runs[0]["grid"]}
-    for mode in SPEED_OPTIONS:
+    for mode in options:
         out[mode] = {
             key: float(np.mean([r[mode][key] for r in runs])) for key in ("top1", "balanced_acc", "train_s")
         }
@@ -248,7 +255,7 @@ def synth_accuracy(steps: int, eval_scenes: int = 30, seeds: int = 3) -> dict:
     return out
 
 
-def synth_accuracy_one(steps: int, eval_scenes: int, seed: int) -> dict:
+def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[str]) -> dict:
     """Train the paper's model and each speed option on the same synthetic data; held-out metrics.
 
     Each step: batch 8, half successes and half failures drawn from the label maps of fresh
@@ -257,8 +264,8 @@ def synth_accuracy_one(steps: int, eval_scenes: int, seed: int) -> dict:
     cells near the box is a success; ``balanced_acc``, mean of the accuracies on successes and
     on failures near the box (threshold 0.5)."""
     out = {"steps": steps, "eval_scenes": eval_scenes, "grid": "32x32x16 @ 4 mm, R=8"}
-    for mode, overrides in SPEED_OPTIONS.items():
-        cfg = load_config("default", SYNTH + overrides)
+    for mode in options:
+        cfg = load_config("default", SYNTH + SPEED_OPTIONS[mode])
         torch.manual_seed(seed)
         model = build_model(cfg).train()
         opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
@@ -318,11 +325,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="train scene- and kernel-rotation models this many steps on the synthetic task (0: skip)")
     ap.add_argument("--accuracy-seeds", type=int, default=3, help="seeds of the synthetic accuracy comparison")
     ap.add_argument("--only-accuracy", action="store_true", help="run only the synthetic accuracy comparison")
+    ap.add_argument("--options", default=",".join(SPEED_OPTIONS),
+                    help=f"comma-separated options of the accuracy comparison (of {', '.join(SPEED_OPTIONS)})")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    options = [o for o in args.options.split(",") if o]
+    unknown = sorted(set(options) - set(SPEED_OPTIONS))
+    if unknown:
+        ap.error(f"--options: unknown {unknown}; known: {list(SPEED_OPTIONS)}")
     if args.only_accuracy:
-        print(json.dumps({"speed_option_accuracy": synth_accuracy(args.accuracy_steps or 300, seeds=args.accuracy_seeds)}))
+        acc = synth_accuracy(args.accuracy_steps or 300, seeds=args.accuracy_seeds, options=options)
+        print(json.dumps({"speed_option_accuracy": acc}))
         return 0
     default = load_config("default")
     paper = load_config("paper")
@@ -347,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_kernel:
         out["kernel_rotation_consistency"] = rotation_consistency(None)
     if args.accuracy_steps > 0:
-        out["speed_option_accuracy"] = synth_accuracy(args.accuracy_steps, seeds=args.accuracy_seeds)
+        out["speed_option_accuracy"] = synth_accuracy(args.accuracy_steps, seeds=args.accuracy_seeds, options=options)
     out["load_avg_after"] = os.getloadavg()[0]
     print(json.dumps(out))
     return 0
