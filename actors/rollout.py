@@ -9,7 +9,7 @@ Usage::
 Episode e runs on the scene seed ``SeedSequence([seed, e])`` (reproducible one by one). The
 candidate openings are ``grippers.eval_openings``. ``--json`` writes
 {"scene", "objects", "gripper", "policy", "episodes", "trials", "successes", "success_rate",
-"median_trial_s"}; ``--png`` draws, for the first ``--png-trials`` trials, the heightmap with the
+"median_trial_s"} (and "checkpoint", "mode" for a checkpoint policy); ``--png`` draws, for the first ``--png-trials`` trials, the heightmap with the
 grasp (a line across the jaws at yaw theta, as long as the opening's finger aperture) and the outcome.
 Bad input ends with one line on stderr and exit status 2.
 """
@@ -156,6 +156,8 @@ def run(args) -> dict:
         "successes": successes,
         "success_rate": successes / trials,
         "median_trial_s": float(np.median(times)),
+        **({"checkpoint": args.policy[len("checkpoint:"):], "mode": args.mode or "fix-gripper"}
+           if args.policy.startswith("checkpoint:") else {}),
     }
 
 

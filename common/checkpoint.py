@@ -98,9 +98,32 @@ def save_checkpoint(
     return path
 
 
+SHIPPED_PREFIX = "model:"
+"""``model:NAME`` names a checkpoint shipped with the project: assets/models/NAME/checkpoint.pt."""
+
+
+def shipped_models_dir() -> Path:
+    """assets/models of the installed package (trained checkpoints shipped with the project)."""
+    return Path(__file__).resolve().parents[1] / "assets" / "models"
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The file of ``path``, or of a shipped model when ``path`` is ``model:NAME``."""
+    text = str(path)
+    if not text.startswith(SHIPPED_PREFIX):
+        return Path(path)
+    name = text[len(SHIPPED_PREFIX):]
+    shipped = shipped_models_dir()
+    out = shipped / name / "checkpoint.pt"
+    if not name or "/" in name or not out.is_file():
+        known = sorted(p.parent.name for p in shipped.glob("*/checkpoint.pt"))
+        raise CheckpointError(f"{text}: no shipped model of that name (known: {', '.join(known) or 'none'})")
+    return out
+
+
 def read_checkpoint(path: str | Path) -> Checkpoint:
-    """Read and check a checkpoint file without building the model."""
-    path = Path(path)
+    """Read and check a checkpoint file (or ``model:NAME``, a shipped one) without building the model."""
+    path = resolve_checkpoint(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
     try:

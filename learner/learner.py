@@ -71,20 +71,21 @@ class Learner:
         self.model = build_model(cfg).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.learner.lr)
         self.generator = torch.Generator().manual_seed(seed)
-        self.limiter = SamplesPerInsert(
-            spi=cfg.learner.samples_per_insert, min_replay=cfg.learner.min_replay, batch_size=cfg.learner.batch_size
-        )
+        self.limiter = SamplesPerInsert.from_config(cfg.learner)
         self.stats = TrainStats()
         self.steps_since_publish = 0
 
-    def train(self, steps: int) -> TrainStats:
-        """Run ``steps`` optimiser steps; returns the updated statistics."""
+    def train(self, steps: int, max_seconds: float | None = None) -> TrainStats:
+        """Run ``steps`` optimiser steps, or fewer (at least one) once ``max_seconds`` have passed;
+        returns the updated statistics (loss and scores: means over the steps of this call)."""
         if steps <= 0:
             return self.stats
         t0 = time.perf_counter()
         self.model.train()
         losses, pos, neg = [], [], []
-        for _ in range(steps):
+        for n in range(steps):
+            if n > 0 and max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
+                break
             batch = self.replay.sample(self.cfg.learner.batch_size)
             scene, action = augment_batch(
                 batch.scene, batch.action, self.cfg.model.rotations, self.cfg.learner.augment_prob, self.generator

@@ -7,10 +7,13 @@ and counters between them:
 
     actors:  run_episodes(n, epsilon, version, [weights_ref], first_episode) -> reports
     learner: train(steps) -> stats (+ a new weights version every P steps, one ray.put each)
-    driver:  steps allowed by the samples-per-insert limiter; progress; checkpoints; limits
+    driver:  the samples-per-insert limiter on both sides (learner steps allowed; an actor's next
+             chunk held back while inserts lead the learner by learner.insert_lead trials);
+             progress; checkpoints; limits
 
 Weights reach an actor with its next chunk of episodes (a reference; the actor fetches the
-object only when the version is newer), so no actor ever waits for the learner.
+object only when the version is newer), so no actor ever waits for weights; an actor waits
+only when the rate limiter holds its next chunk back.
 """
 
 from __future__ import annotations
@@ -22,18 +25,27 @@ import time
 from collections import deque
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
 from common.checkpoint import read_checkpoint, save_checkpoint
 from common.config import Config
+from common.policy import action_region
+from common.tsdf import heightmap_from_tsdf
+from common.viz import score_maps_image
 from learner.learner import Learner, epsilon_at, resolve_device
+from learner.rate_limit import SamplesPerInsert
 from replay.client import ReplayClient, open_local_shards, start_remote_shards
+from replay.schema import ReplayEmptyError
 
 CHECKPOINT_NAME = "latest.pt"
 """File name of the newest checkpoint inside RUN/checkpoints/."""
 LEARNER_CHUNK_STEPS = 16
 """Most learner steps per train() call, so the driver stays responsive."""
+LEARNER_CHUNK_S = 2.0
+"""A train() call starts no further step after this many seconds, so the driver (and actors
+held back by the rate limiter) see fresh sample counts even when one step takes seconds."""
 LEARNER_IDLE_WAIT_S = 1.0
 """A learner call with no step allowed waits this long for new trials before returning."""
 
@@ -88,12 +100,13 @@ class LearnerProcess:
             if steps > 0 or time.time() >= deadline:
                 break
             time.sleep(0.25)
+        before = self.learner.stats.steps
         if steps > 0:
-            self.learner.train(steps)
+            self.learner.train(steps, max_seconds=LEARNER_CHUNK_S)
         s = self.learner.stats
         out = {
             "steps": s.steps, "samples": s.samples, "version": s.version, "loss": s.loss,
-            "pos_score": s.pos_score, "neg_score": s.neg_score, "inserted": inserted, "ran": steps,
+            "pos_score": s.pos_score, "neg_score": s.neg_score, "inserted": inserted, "ran": s.steps - before,
             "weights": None,
         }
         if force_publish or self.learner.steps_since_publish >= self.cfg.learner.publish_every:
@@ -113,18 +126,49 @@ class LearnerProcess:
             pass
         return version, [state]
 
-    def checkpoint(self, epsilon: float, inserted: int) -> str:
-        """Write RUN/checkpoints/latest.pt atomically; returns its path."""
+    def checkpoint(self, epsilon: float, inserted: int, snapshot: bool = False) -> str:
+        """Write RUN/checkpoints/latest.pt atomically; returns its path. With ``snapshot`` (and
+        ``learner.keep_snapshots``) also RUN/checkpoints/step-NNNNNNN.pt: the weights, without the
+        optimiser and learner state."""
         ls = self.learner.state_dict()
+        replay = {"inserted": int(inserted), "shards": self.cfg.replay.shards}
         path = save_checkpoint(
             checkpoint_path(self.run_dir), self.learner.model, self.cfg,
             step=ls["steps"], version=ls["version"], epsilon=epsilon, optimizer=ls["optimizer"],
             extra={
                 "learner": {"samples": ls["samples"], "history": ls["history"], "generator": ls["generator"]},
-                "replay": {"inserted": int(inserted), "shards": self.cfg.replay.shards},
+                "replay": replay,
             },
         )
+        if snapshot and self.cfg.learner.keep_snapshots:
+            save_checkpoint(
+                path.parent / f"step-{ls['steps']:07d}.pt", self.learner.model, self.cfg,
+                step=ls["steps"], version=ls["version"], epsilon=epsilon, extra={"replay": replay},
+            )
         return str(path)
+
+    def score_map_image(self) -> tuple[int, np.ndarray] | None:
+        """(learner step, (H, W, 3) uint8 image): the current weights' score maps (3 of the R
+        rotations, best marked) of one replayed trial's scene and gripper at its executed opening;
+        None while the replay holds no trial."""
+        try:
+            batch = self.replay.sample(2)
+        except ReplayEmptyError:
+            return None
+        model = self.learner.model
+        model.eval()
+        try:
+            probs = model.predict(batch.scene[:1].to(model.device), [batch.gripper[:1].to(model.device)])
+        finally:
+            model.train()
+        grid = self.cfg.scene_grid
+        heightmap = heightmap_from_tsdf(batch.scene[0, 0].numpy(), grid)
+        mask = action_region(self.cfg)
+        if self.cfg.model.min_surface_height > 0:
+            mask &= heightmap > self.cfg.model.min_surface_height
+        label = "success" if float(batch.label[0]) > 0.5 else "failure"
+        title = f"step {self.learner.stats.steps}, replayed trial ({label}), executed opening"
+        return self.learner.stats.steps, score_maps_image(probs[0, 0].cpu().numpy(), heightmap, self.cfg, mask=mask, title=title)
 
     def history(self) -> list:
         """(step, loss) pairs since the run started."""
@@ -199,6 +243,13 @@ class Progress:
                 )
         return line
 
+    def add_score_maps(self, shot: tuple[int, np.ndarray] | None) -> None:
+        """TensorBoard image ``learner/score_maps`` at its learner step (see LearnerProcess.score_map_image)."""
+        if shot is not None:
+            step, image = shot
+            self.tb.add_image("learner/score_maps", image, step, dataformats="HWC")
+            self.tb.flush()
+
     def close(self) -> None:
         self.log.close()
         self.tb.close()
@@ -215,7 +266,8 @@ def _done(cfg: Config, inserted: int, t0: float, stop: dict) -> bool:
 def _summary(run_dir: Path, inserted: int, stats: dict, progress: Progress, extra: dict) -> dict:
     return {
         "run_dir": str(run_dir), "trials": inserted, "episodes": progress.episodes,
-        "learner_steps": stats.get("steps", 0), "weights_version": stats.get("version", 0),
+        "learner_steps": stats.get("steps", 0), "learner_samples": stats.get("samples", 0),
+        "weights_version": stats.get("version", 0),
         "loss": stats.get("loss"), "checkpoint": str(checkpoint_path(run_dir)), **extra,
     }
 
@@ -240,16 +292,19 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
             eps = epsilon_at(cfg, inserted)
             progress.add_reports(actor.run_episodes(1, eps))
             stats = learner.train(LEARNER_CHUNK_STEPS)
-            while stats["ran"] == LEARNER_CHUNK_STEPS and not stop["flag"]:
+            weights = stats["weights"]
+            while stats["ran"] > 0 and not stop["flag"]:
                 stats = learner.train(LEARNER_CHUNK_STEPS)
-            if stats["weights"] is not None:
-                version, box = stats["weights"]
+                weights = stats["weights"] or weights
+            if weights is not None:
+                version, box = weights
                 actor.set_weights(version, box[0])
                 published += 1
             inserted = stats["inserted"]
             progress.tick(inserted, stats, eps)
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                learner.checkpoint(eps, inserted)
+                learner.checkpoint(eps, inserted, snapshot=True)
+                progress.add_score_maps(learner.score_map_image())
                 last_ckpt = time.time()
     finally:
         actor.close()
@@ -335,6 +390,10 @@ def run_distributed(
         pending[actors[a].run_episodes.remote(cfg.actor.weights_poll_episodes, eps, version, box, next_episode[a])] = a
         next_episode[a] += cfg.actor.weights_poll_episodes
 
+    limiter = SamplesPerInsert.from_config(cfg.learner)
+    waiting: dict[int, float] = {}  # actor -> time it began waiting for the learner
+    wait_s = 0.0
+
     for a in range(n_actors):
         submit(a)
     learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
@@ -356,11 +415,19 @@ def run_distributed(
                 except (RayActorError, RayTaskError) as e:
                     restarts += 1
                     print(f"actor {a}: {type(e).__name__}; it restarts and continues", flush=True)
-                submit(a)
+                waiting[a] = time.time()
             inserted = total_inserted(replay)
+            # The actor side of the rate limiter: an actor starts its next chunk only while the
+            # inserts are less than insert_lead trials ahead of the learner's samples.
+            for a in sorted(waiting):
+                if not limiter.may_insert(inserted, stats["samples"]):
+                    break
+                wait_s += time.time() - waiting.pop(a)
+                submit(a)
             progress.tick(inserted, stats, epsilon_at(cfg, inserted))
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted))
+                ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, snapshot=True))
+                progress.add_score_maps(ray.get(learner.score_map_image.remote()))
                 last_ckpt = time.time()
     finally:
         # Let every running chunk finish its episode (no partial trials), then checkpoint.
@@ -385,5 +452,6 @@ def run_distributed(
     (Path(run_dir) / "history.json").write_text(json.dumps(history))
     return _summary(
         run_dir, inserted, stats, progress,
-        {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts, "checkpoint": ckpt},
+        {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts, "checkpoint": ckpt,
+         "actor_wait_s": round(wait_s + sum(time.time() - w for w in waiting.values()), 1)},  # summed over actors
     )

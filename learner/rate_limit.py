@@ -2,15 +2,21 @@
 
 The learner may draw ``samples_per_insert`` trials for every trial inserted into the replay,
 once the replay holds ``min_replay`` trials. The paper's schedule is 32 batches of 8 per 8
-new trials, i.e. 32 samples per insert. Call loop::
+new trials, i.e. 32 samples per insert. The limit holds on both sides: the learner waits for
+trials, and actors wait (start no new episode) while the trials inserted run more than
+``insert_lead`` ahead of what the learner has sampled, so a slow learner is not starved by
+fast actors (on a laptop they share the cores). Call loop::
 
-    limiter = SamplesPerInsert(spi=32, min_replay=32, batch_size=8)
+    limiter = SamplesPerInsert(spi=32, min_replay=32, batch_size=8, insert_lead=32)
     steps = limiter.allowed_steps(inserted=replay_total, sampled=learner_samples)
+    if limiter.may_insert(inserted=replay_total, sampled=learner_samples): ...start an episode
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from common.config import LearnerConfig
 
 
 @dataclass(frozen=True)
@@ -23,6 +29,8 @@ class SamplesPerInsert:
     """Inserted trials before any step is allowed."""
     batch_size: int
     """Trials per learner step."""
+    insert_lead: float = 0.0
+    """Trials the inserts may run ahead of the learner's schedule before actors wait; 0 = never wait."""
 
     def allowed_steps(self, inserted: int, sampled: int) -> int:
         """Whole learner steps that may run now (>= 0)."""
@@ -30,3 +38,17 @@ class SamplesPerInsert:
             return 0
         budget = self.spi * (inserted - self.min_replay + 1) - sampled
         return max(0, int(budget // self.batch_size))
+
+    @classmethod
+    def from_config(cls, learner: LearnerConfig) -> "SamplesPerInsert":
+        """The limiter of a run's ``learner`` config section."""
+        return cls(spi=learner.samples_per_insert, min_replay=learner.min_replay,
+                   batch_size=learner.batch_size, insert_lead=learner.insert_lead)
+
+    def lead(self, inserted: int, sampled: int) -> float:
+        """Trials inserted beyond what the learner's samples so far account for (< 0 before min_replay)."""
+        return inserted - self.min_replay - sampled / self.spi
+
+    def may_insert(self, inserted: int, sampled: int) -> bool:
+        """Whether actors may start another episode now."""
+        return self.insert_lead <= 0 or self.spi <= 0 or self.lead(inserted, sampled) < self.insert_lead

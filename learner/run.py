@@ -29,7 +29,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m launcher", description=__doc__.splitlines()[0])
     p.add_argument("--actors", type=int, default=2, help="grasp actors (0 = everything in this process)")
     p.add_argument("--shards", type=int, default=None, help="replay shards (default: replay.shards)")
-    p.add_argument("--config", default="default", help="config name (default|paper|cluster|tiny) or YAML path")
+    p.add_argument("--config", default="default", help="config name (default|paper|tiny) or YAML path")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--run-dir", default=None, help="run directory (default: runs/<time>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir")

@@ -69,7 +69,7 @@ def _wait_for(predicate, timeout: float, what: str, proc: subprocess.Popen | Non
 def test_two_actor_run_collects_trains_and_publishes(tmp_path):
     run_dir = tmp_path / "run"
     t0 = time.time()
-    proc = _launch(run_dir, "--max-trials", "30")
+    proc = _launch(run_dir, "--max-trials", "30", "--set", "learner.insert_lead=4")
     out, _ = proc.communicate(timeout=600)
     elapsed = time.time() - t0
     assert proc.returncode == 0, out[-3000:]
@@ -77,6 +77,11 @@ def test_two_actor_run_collects_trains_and_publishes(tmp_path):
     assert summary["trials"] >= 30
     assert summary["learner_steps"] > 0
     assert summary["weights_published"] >= 2
+    # The actor side of the rate limiter: inserts never lead the learner's schedule by the
+    # allowance plus one in-flight single-object episode per actor.
+    cfg = load_config(run_dir / "config.yaml")
+    lead = summary["trials"] - cfg.learner.min_replay - summary["learner_samples"] / cfg.learner.samples_per_insert
+    assert lead < cfg.learner.insert_lead + 2, (lead, summary)
     assert _committed(run_dir) >= 30
     ckpt = read_checkpoint(run_dir / "checkpoints" / "latest.pt")
     assert ckpt.step == summary["learner_steps"] and ckpt.cfg.replay.shards == 2

@@ -24,6 +24,22 @@ def test_rate_limiter_keeps_samples_per_insert():
     assert abs(sampled - 32 * (inserted - 10 + 1)) < 8
 
 
+def test_actors_wait_while_inserts_lead_the_learner():
+    lim = SamplesPerInsert(spi=8, min_replay=10, batch_size=8, insert_lead=4)
+    assert lim.may_insert(inserted=13, sampled=0)  # 3 trials past the minimum, none sampled yet
+    assert not lim.may_insert(inserted=14, sampled=0)
+    assert lim.may_insert(inserted=14, sampled=8)  # one step accounts for one trial at spi 8
+    assert SamplesPerInsert(spi=8, min_replay=10, batch_size=8).may_insert(inserted=10**6, sampled=0)
+    # Alternating the two sides keeps the ratio: inserts never lead by the allowance or more.
+    inserted, sampled = 0, 0
+    for _ in range(500):
+        if lim.may_insert(inserted, sampled):
+            inserted += 1
+        sampled += 8 * min(1, lim.allowed_steps(inserted, sampled))
+        assert lim.lead(inserted, sampled) < lim.insert_lead + 1
+    assert inserted > 100 and abs(sampled - 8 * (inserted - 10)) <= 8 * (lim.insert_lead + 1)
+
+
 def test_epsilon_schedule_is_linear_and_clamped():
     cfg = load_config("default")
     assert epsilon_at(cfg, 0) == pytest.approx(0.8)
@@ -90,3 +106,22 @@ def test_save_restore_continues_identically(filled_replay):
     sa = a.optimizer.state_dict()["state"]
     sb = b.optimizer.state_dict()["state"]
     assert sa.keys() == sb.keys() and all(torch.equal(sa[k]["exp_avg"], sb[k]["exp_avg"]) for k in sa)
+
+
+def test_checkpoint_snapshot_and_score_map_image(filled_replay, tmp_path):
+    from common.checkpoint import read_checkpoint
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    torch.manual_seed(0)
+    proc = LearnerProcess(cfg, client._shards, str(tmp_path / "run"), seed=0, torch_threads=1)
+    proc.learner.train(1)
+    proc.checkpoint(epsilon=0.5, inserted=12, snapshot=True)
+    latest = read_checkpoint(checkpoint_path(tmp_path / "run"))
+    snap = read_checkpoint(checkpoint_path(tmp_path / "run").parent / "step-0000001.pt")
+    assert latest.optimizer is not None and snap.optimizer is None and snap.step == latest.step == 1
+    assert all(torch.equal(snap.model_state[k], v) for k, v in latest.model_state.items())
+    step, image = proc.score_map_image()
+    assert step == 1 and image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
+    assert image.std() > 0, "a drawn figure, not a blank image"
+    assert proc.learner.model.training, "the learner's model goes back to training mode"

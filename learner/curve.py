@@ -1,0 +1,117 @@
+"""Learning curve of a run as a PNG: ``python -m learner.curve RUN --out curve.png [--greedy A.json ...]``.
+
+Panels, all against trials collected:
+
+- training success: the rolling success rate of the last 200 trials the actors ran (their
+  epsilon-greedy policy, so it mixes exploration and the learned policy) with epsilon;
+- loss: the learner's mean training loss per chunk of steps;
+- greedy success (with ``--greedy``): rollout summaries written by ``python -m launcher rollout
+  --policy checkpoint:RUN/checkpoints/step-NNNNNNN.pt --json A.json``; each point sits at the
+  trials the checkpoint had seen (its ``replay.inserted``), with a 95% Wilson interval.
+
+Reads RUN/progress.jsonl (one line every few seconds) and the checkpoints the summaries name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval of a success rate."""
+    if n == 0:
+        return 0.0, 1.0
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def read_progress(run: Path) -> list[dict]:
+    """The lines of RUN/progress.jsonl, in order."""
+    path = run / "progress.jsonl"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: not found (is {run} a run directory?)")
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def read_greedy(paths: list[str]) -> list[dict]:
+    """Rollout summaries of checkpoint policies with the trials and steps their checkpoints had seen."""
+    from common.checkpoint import read_checkpoint
+
+    points = []
+    for p in paths:
+        summary = json.loads(Path(p).read_text())
+        if "checkpoint" not in summary:
+            raise ValueError(f"{p}: checkpoint: missing (not a rollout of a checkpoint policy)")
+        ckpt = read_checkpoint(summary["checkpoint"])
+        inserted = (ckpt.extra.get("replay") or {}).get("inserted")
+        if inserted is None:
+            raise ValueError(f"{summary['checkpoint']}: replay.inserted: missing (not a learner checkpoint)")
+        points.append({**summary, "inserted": int(inserted), "step": ckpt.step})
+    return sorted(points, key=lambda d: d["inserted"])
+
+
+def plot(run: Path, out: Path, greedy: list[dict], title: str | None = None) -> Path:
+    """Draw the panels to ``out`` (PNG); returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines = read_progress(run)
+    trials = [d["trials"] for d in lines]
+    fig, axes = plt.subplots(1, 3 if greedy else 2, figsize=(13 if greedy else 9, 3.6), dpi=100)
+    ax = axes[0]
+    ax.plot(trials, [d["success_rate"] for d in lines], color="tab:blue", label="training success (last 200)")
+    ax.plot(trials, [d["epsilon"] for d in lines], color="tab:gray", ls="--", label="epsilon")
+    ax.set_xlabel("trials collected")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=8, loc="lower right")
+    ax = axes[1]
+    ax.plot(trials, [d["loss"] for d in lines], color="tab:red")
+    ax.set_xlabel("trials collected")
+    ax.set_ylabel("training loss")
+    if greedy:
+        ax = axes[2]
+        xs = [g["inserted"] for g in greedy]
+        rates = [g["success_rate"] for g in greedy]
+        lo_hi = [wilson(g["successes"], g["trials"]) for g in greedy]
+        ax.errorbar(xs, rates, yerr=[[r - lo for r, (lo, _) in zip(rates, lo_hi)], [hi - r for r, (_, hi) in zip(rates, lo_hi)]],
+                    marker="o", color="tab:green", capsize=3)
+        for g in greedy:
+            ax.annotate(f"{g['success_rate']:.2f}", (g["inserted"], g["success_rate"]), textcoords="offset points",
+                        xytext=(4, 6), fontsize=7)
+        ax.set_xlabel("trials collected")
+        ax.set_ylabel(f"greedy success ({greedy[-1]['mode']}, {greedy[-1]['trials']} trials)")
+        ax.set_ylim(0, 1)
+    fig.suptitle(title or f"{run}", fontsize=9)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m learner.curve", description=__doc__.splitlines()[0])
+    ap.add_argument("run", help="run directory")
+    ap.add_argument("--out", required=True, help="PNG to write")
+    ap.add_argument("--greedy", nargs="*", default=[], help="rollout --json summaries of the run's checkpoints")
+    ap.add_argument("--title", default=None)
+    args = ap.parse_args(argv)
+    try:
+        path = plot(Path(args.run), Path(args.out), read_greedy(args.greedy), args.title)
+    except (OSError, ValueError, KeyError) as e:
+        print(f"curve: error: {e}", file=sys.stderr)
+        return 2
+    print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
