@@ -40,6 +40,7 @@ from common.gripper_formats import (
     FormatError,
     extract_subtree,
     freeze_joints,
+    inertia_from_collision,
     joint_table,
     links_and_joints,
     load_robot_xml,
@@ -208,7 +209,7 @@ def joint_positions(spec: GripperSpec, opening: float, scale: float = 1.0) -> di
 _SPEC_KEYS = {
     "name", "family", "split", "description", "license", "source", "cut_link", "drive_joints", "couplings",
     "hold_joints", "tcp", "friction", "force", "coupling_force", "max_velocity", "base_force", "aperture_band",
-    "params", "base_mass",
+    "params", "base_mass", "inertia",
 }
 
 
@@ -278,7 +279,7 @@ def _set_base_mass(robot: ET.Element, cut_link: str, mass: float) -> None:
 
 
 def _processed_urdf(spec_path: Path, text: str, source: Path, cut_link: str, keep: set[str], hold: dict,
-                    base_mass: float | None) -> Path:
+                    base_mass: float | None, inertia: str = "file") -> Path:
     """Cut, freeze and resolve the source model once; cached by content."""
     st = source.stat()
     key = hashlib.sha1(
@@ -298,6 +299,8 @@ def _processed_urdf(spec_path: Path, text: str, source: Path, cut_link: str, kee
         if base_mass is not None:
             _set_base_mass(robot, cut_link, base_mass)
         resolve_meshes(robot, source, out.parent / "meshes")
+        if inertia == "geometry":
+            inertia_from_collision(robot)
         links_and_joints(robot)
     except FormatError as e:
         raise GripperSpecError(f"{spec_path}: source: {source.name}: {e}") from None
@@ -425,7 +428,10 @@ def load_spec(path: str | Path) -> GripperSpec:
 
     keep = drive_names | {c.joint for c in couplings}
     base_mass = _scalar(data, "base_mass", path, 1.0) if "base_mass" in data else None
-    urdf = _processed_urdf(path, text, source, cut_link, keep, {k: float(v) for k, v in hold.items()}, base_mass)
+    inertia = data.get("inertia", "file")
+    if inertia not in ("file", "geometry"):
+        raise GripperSpecError(f"{path}: inertia: expected file or geometry, got {inertia!r}")
+    urdf = _processed_urdf(path, text, source, cut_link, keep, {k: float(v) for k, v in hold.items()}, base_mass, inertia)
     finger_links = _descendant_links(table, keep)
 
     friction = _scalar(data, "friction", path, 1.0)

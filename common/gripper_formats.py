@@ -294,6 +294,71 @@ def resolve_meshes(robot: ET.Element, source: Path, mesh_cache: Path) -> None:
         mesh.set("filename", str(path))
 
 
+def _collision_mesh(col: ET.Element, what: str):
+    """trimesh of one <collision> element in its link frame (meshes as their convex hull, as
+    PyBullet collides them), or None for geometry without volume."""
+    import trimesh
+
+    geom = col.find("geometry")
+    shape = None if geom is None or len(geom) == 0 else geom[0]
+    if shape is None:
+        return None
+    if shape.tag == "box":
+        tm = trimesh.creation.box(extents=_floats(shape.get("size"), 3, f"{what} box size"))
+    elif shape.tag == "sphere":
+        tm = trimesh.creation.icosphere(2, float(shape.get("radius", 0)))
+    elif shape.tag == "cylinder":
+        tm = trimesh.creation.cylinder(float(shape.get("radius", 0)), float(shape.get("length", 0)), sections=24)
+    elif shape.tag == "mesh":
+        try:
+            tm = trimesh.load(shape.get("filename"), force="mesh")
+        except Exception as e:  # noqa: BLE001 - any loader failure is reported as one line
+            raise FormatError(f"{what}: mesh {shape.get('filename')!r} cannot be read ({type(e).__name__})") from None
+        tm.apply_scale(np.broadcast_to(_floats(shape.get("scale"), 3, f"{what} mesh scale", (1, 1, 1)), (3,)))
+        tm = tm.convex_hull if len(tm.faces) else None
+    else:
+        return None
+    if tm is None or tm.volume <= 1e-12:
+        return None
+    tm.apply_transform(origin_matrix(col.find("origin"), f"{what} origin"))
+    return tm
+
+
+def inertia_from_collision(robot: ET.Element) -> list[str]:
+    """Replace each link's inertial by that of its collision geometry at the link's own mass.
+
+    The geometry is taken as one solid of uniform density (convex hulls of meshes, primitives as
+    given); the mass stays what the file says. For models whose files carry placeholder inertias
+    (for example 1 kg m^2 on a 20 g finger, which makes fingers sluggish under their motors).
+    Returns the names of the links changed; links without mass or collision volume keep theirs.
+    """
+    changed = []
+    for link in robot.findall("link"):
+        name = link.get("name")
+        inertial = link.find("inertial")
+        mass_el = None if inertial is None else inertial.find("mass")
+        mass = 0.0 if mass_el is None else float(mass_el.get("value", 0))
+        meshes = [m for c in link.findall("collision") if (m := _collision_mesh(c, f"link {name} collision")) is not None]
+        if mass <= 0 or not meshes:
+            continue
+        volumes = np.array([m.volume for m in meshes])
+        com = sum(v * m.center_mass for v, m in zip(volumes, meshes)) / volumes.sum()
+        tensor = np.zeros((3, 3))
+        for v, m in zip(volumes, meshes):
+            d = m.center_mass - com
+            part_mass = mass * v / volumes.sum()
+            # inertia of the part about its centre at unit density, scaled to its mass, moved to the link's COM
+            tensor += m.moment_inertia / m.mass * part_mass + part_mass * (d @ d * np.eye(3) - np.outer(d, d))
+        for el in list(inertial):
+            if el.tag in ("origin", "inertia"):
+                inertial.remove(el)
+        ET.SubElement(inertial, "origin", {"xyz": _fmt(com), "rpy": "0 0 0"})
+        keys = (("ixx", 0, 0), ("ixy", 0, 1), ("ixz", 0, 2), ("iyy", 1, 1), ("iyz", 1, 2), ("izz", 2, 2))
+        ET.SubElement(inertial, "inertia", {k: f"{tensor[a, b]:.9g}" for k, a, b in keys})
+        changed.append(name)
+    return changed
+
+
 def scale_robot(robot: ET.Element, s: float) -> ET.Element:
     """The model scaled by ``s`` about the root frame: geometry, frames, prismatic limits, inertia."""
     out = copy.deepcopy(robot)

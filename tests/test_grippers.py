@@ -184,6 +184,37 @@ def test_real_grippers_lift_a_box(name):
     assert lift_test(get_gripper(name), 1.0, "box", 0.04).success
 
 
+def test_inertia_from_collision_of_an_offset_box():
+    import xml.etree.ElementTree as ET
+
+    from common.gripper_formats import inertia_from_collision
+
+    robot = ET.fromstring(
+        '<robot name="r"><link name="a"><inertial><mass value="2.0"/>'
+        '<inertia ixx="1" iyy="1" izz="1" ixy="0" ixz="0" iyz="0"/></inertial>'
+        '<collision><origin xyz="0.1 0 0.05"/><geometry><box size="0.1 0.2 0.3"/></geometry></collision>'
+        "</link><link name=\"massless\"/></robot>"
+    )
+    assert inertia_from_collision(robot) == ["a"]
+    inertial = robot.find("link/inertial")
+    assert np.allclose([float(v) for v in inertial.find("origin").get("xyz").split()], [0.1, 0.0, 0.05])
+    got = {k: float(v) for k, v in inertial.find("inertia").attrib.items()}
+    m, (a, b, c) = 2.0, (0.1, 0.2, 0.3)  # solid box about its centre: m / 12 * (sum of the other two sides squared)
+    assert got["ixx"] == pytest.approx(m / 12 * (b * b + c * c), rel=1e-6)
+    assert got["iyy"] == pytest.approx(m / 12 * (a * a + c * c), rel=1e-6)
+    assert got["izz"] == pytest.approx(m / 12 * (a * a + b * b), rel=1e-6)
+    assert abs(got["ixy"]) < 1e-12 and float(inertial.find("mass").get("value")) == 2.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", REAL)
+def test_real_grippers_pass_the_full_check(name):
+    from actors.gripper_cli import check_gripper
+
+    report = check_gripper(get_gripper(name))
+    assert report.passed, report.reasons
+
+
 def test_list_grippers_filters():
     test = list_grippers(split="test")
     assert {s.name for s in test} == set(REAL)
@@ -291,6 +322,7 @@ def test_missing_mesh_and_missing_source(tmp_path):
         ("split", "val", "split"),
         ("cut_link", "no_link", "cut_link"),
         ("friction", -1, "friction"),
+        ("inertia", "guess", "inertia"),
         ("colour", "red", "colour"),
         ("tcp", {"position": [0, 0], "approach": [0, 0, 1]}, "tcp.position"),
     ],
