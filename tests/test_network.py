@@ -378,3 +378,25 @@ def test_frozen_stem_trains_everything_but_the_first_block():
     trained.eval()
     grip = random_gripper(cfg, 1, 4)
     assert torch.equal(model.predict(scene, [grip]), trained.predict(scene, [grip]))
+
+
+def test_shipped_models_load_by_name(tmp_path, monkeypatch):
+    import common.checkpoint as ck
+
+    cfg, model = small_model(seed=2)
+    ck.save_checkpoint(tmp_path / "tiny-net" / "checkpoint.pt", model.eval(), cfg, step=3, version=2)
+    monkeypatch.setattr(ck, "shipped_models_dir", lambda: tmp_path)
+    loaded, ckpt = ck.load_checkpoint("model:tiny-net")
+    assert ckpt.step == 3 and all(torch.equal(v, loaded.state_dict()[k]) for k, v in model.state_dict().items())
+    with pytest.raises(ck.CheckpointError, match="known: tiny-net") as e:
+        ck.read_checkpoint("model:nope")
+    assert "\n" not in str(e.value) and "model:nope" in str(e.value)
+
+
+def test_every_shipped_model_loads():
+    from common.checkpoint import load_checkpoint, shipped_models_dir
+
+    names = sorted(p.parent.name for p in shipped_models_dir().glob("*/checkpoint.pt"))
+    for name in names:
+        model, ckpt = load_checkpoint(f"model:{name}")
+        assert not model.training and (shipped_models_dir() / name / "config.yaml").is_file()
