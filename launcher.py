@@ -14,6 +14,8 @@ from __future__ import annotations
 import importlib
 import sys
 
+from common.runtime import apply_process_env
+
 SUBCOMMANDS = {
     "train": "learner.run",
     "rollout": "actors.rollout",
@@ -29,6 +31,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     name = argv[0] if argv and argv[0] in SUBCOMMANDS else "train"
     rest = argv[1:] if argv and argv[0] in SUBCOMMANDS else argv
+    apply_process_env()
     module = importlib.import_module(SUBCOMMANDS[name])
     return int(module.cli(rest) or 0)
 

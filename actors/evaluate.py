@@ -66,6 +66,7 @@ from common.config import Config, load_config, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
+from common.runtime import ray_init
 from common.network import build_model
 from common.policy import LearnedPolicy
 
@@ -358,10 +359,7 @@ def _run_ray(plan: EvalPlan, units: list[Unit], actors: int, address: str | None
 
     started = not ray.is_initialized()
     if started:
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=max(os.cpu_count() or 1, actors), include_dashboard=False, log_to_driver=False)
+        ray_init(address, num_cpus=max(os.cpu_count() or 1, actors))
     workers = []
     try:
         gpus = 1.0 / actors if plan.device == "cuda" and plan.model_state is not None else 0

@@ -32,6 +32,7 @@ from actors.grasp_actor import EpisodeReport, GraspActor
 from common.checkpoint import read_checkpoint, save_checkpoint
 from common.config import Config
 from common.policy import action_region
+from common.runtime import ray_init
 from common.tsdf import heightmap_from_tsdf
 from common.viz import score_maps_image
 from learner.learner import Learner, epsilon_at, resolve_device
@@ -356,11 +357,8 @@ def run_distributed(
     import ray
     from ray.exceptions import RayActorError, RayTaskError
 
-    if address:
-        ray.init(address=address, log_to_driver=False)
-    else:
-        # Logical CPUs: actors and the learner share the physical cores of a laptop.
-        ray.init(num_cpus=max(os.cpu_count() or 1, n_actors + 1), include_dashboard=False, log_to_driver=False)
+    # Logical CPUs: actors and the learner share the physical cores of a laptop.
+    ray_init(address, num_cpus=max(os.cpu_count() or 1, n_actors + 1))
     try:
         dashboard = ray.get_runtime_context().dashboard_url if address else None
     except AttributeError:

@@ -29,10 +29,11 @@ import torch
 def _collect(cfg, root: Path, n_actors: int, seconds: float) -> tuple[float, float]:
     import ray
 
+    from common.runtime import ray_init
     from learner.loop import ActorProcess, total_inserted
     from replay.client import ReplayClient, start_remote_shards
 
-    ray.init(num_cpus=max(os.cpu_count() or 1, n_actors + 1), include_dashboard=False, log_to_driver=False)
+    ray_init(None, num_cpus=max(os.cpu_count() or 1, n_actors + 1))
     try:
         shards = start_remote_shards(root, cfg)
         replay = ReplayClient(shards, cfg)
