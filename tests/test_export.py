@@ -1,0 +1,56 @@
+"""Exporting a run's checkpoint as a shipped model (learner/export.py)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from common.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
+from common.config import load_config
+from learner.export import cli, export_model
+from tests.test_network import small_model
+
+
+def make_run(tmp_path):
+    cfg, model = small_model(seed=4)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
+    model.train()  # one Adam step on a dummy loss so the optimiser has state to drop
+    loss = sum(p.square().sum() for p in model.parameters())
+    loss.backward()
+    opt.step()
+    model.eval()
+    run = tmp_path / "run"
+    save_checkpoint(run / "checkpoints" / "latest.pt", model, cfg, step=7, version=3, epsilon=0.6,
+                    optimizer=opt, extra={"replay_inserted": 42})
+    (run / "progress.jsonl").write_text(json.dumps({"time": 1.0, "trials": 5}) + "\n")
+    return run, model
+
+
+def test_export_keeps_weights_and_log_drops_optimizer(tmp_path):
+    run, model = make_run(tmp_path)
+    out = export_model(run, "tiny", dest=tmp_path / "models")
+    ckpt = read_checkpoint(out / "checkpoint.pt")
+    assert ckpt.optimizer is None and ckpt.step == 7 and ckpt.version == 3 and ckpt.epsilon == 0.6
+    assert ckpt.extra == {"replay_inserted": 42}
+    loaded, _ = load_checkpoint(out / "checkpoint.pt")
+    assert all(torch.equal(v, loaded.state_dict()[k]) for k, v in model.state_dict().items())
+    assert load_config(out / "config.yaml") == ckpt.cfg
+    assert (out / "progress.jsonl").read_text() == (run / "progress.jsonl").read_text()
+    assert (out / "checkpoint.pt").stat().st_size < (run / "checkpoints" / "latest.pt").stat().st_size
+
+
+def test_export_refuses_to_overwrite_and_bad_sources_fail_clearly(tmp_path, capsys):
+    run, _ = make_run(tmp_path)
+    dest = tmp_path / "models"
+    export_model(run, "tiny", dest=dest)
+    before = (dest / "tiny" / "checkpoint.pt").read_bytes()
+    assert cli([str(run), "tiny", "--dest", str(dest)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "tiny: exists" in err and "\n" not in err
+    assert (dest / "tiny" / "checkpoint.pt").read_bytes() == before
+    assert cli([str(run), "tiny", "--dest", str(dest), "--force"]) == 0
+    with pytest.raises(CheckpointError, match="checkpoint file not found"):
+        export_model(tmp_path / "nowhere", "x", dest=dest)
+    assert not (dest / "x").exists()
