@@ -113,6 +113,26 @@ def draw_trial(path: Path, sim: Simulation, result: TrialResult, aperture: float
     plt.close(fig)
 
 
+def draw_scores(png_dir: Path, stem: str, policy: Policy, result: TrialResult, cfg: Config,
+                openings: tuple[float, ...], title: str) -> list[Path]:
+    """For a learned policy, save STEM_scores.png (the paper's score-map figure for the chosen
+    gripper: three rotations per opening, best rotation framed, max score per map) and
+    STEM_grasp.png (the chosen grasp with the gripper footprint over the heightmap); returns the
+    paths (none for scripted policies)."""
+    from common.policy import LearnedPolicy, valid_cells
+    from common.viz import grasp_image, save_png, score_maps_image
+
+    if not isinstance(policy, LearnedPolicy) or policy.last_probs is None or policy.last_choice is None:
+        return []
+    obs, choice = result.observation, policy.last_choice
+    _, _, _, s, g = choice.action
+    shown = openings if policy.last_probs.shape[1] == len(openings) else (openings[s],)
+    mask = valid_cells(obs, cfg, policy.region)
+    maps = score_maps_image(policy.last_probs[g], obs.heightmap, cfg, shown, mask=mask, title=title)
+    grasp = grasp_image(obs.heightmap, cfg, choice, policy.grippers[g][1][s], title=title)
+    return [save_png(maps, png_dir / f"{stem}_scores.png"), save_png(grasp, png_dir / f"{stem}_grasp.png")]
+
+
 def run(args) -> dict:
     """Run the episodes of ``args`` (parsed CLI) and return the summary dict."""
     cfg = _config(args)
@@ -146,6 +166,7 @@ def run(args) -> dict:
                         f"{policy.name}, score {result.score:.2f}, {len(result.object_ids)} objects (obstacles outlined red)"
                     )
                     draw_trial(png_dir / f"trial_{trials - 1:03d}.png", sim, result, apertures[s], title)
+                    draw_scores(png_dir, f"trial_{trials - 1:03d}", policy, result, cfg, openings, title)
     return {
         "scene": cfg.sim.scene,
         "objects": cfg.sim.objects,

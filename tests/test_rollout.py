@@ -143,10 +143,13 @@ def test_rollout_with_a_checkpoint_policy(tmp_path):
     ckpt = save_checkpoint(tmp_path / "m.pt", build_model(cfg), cfg)
     out = tmp_path / "s.json"
     argv = ["--gripper", GRIPPER, "--policy", f"checkpoint:{ckpt}", "--mode", "fix-config", "--episodes", "1",
-            "--json", str(out)] + [a for kv in small for a in ("--set", kv)]
+            "--json", str(out), "--png", str(tmp_path / "png")] + [a for kv in small for a in ("--set", kv)]
     assert cli(argv) == 0
     summary = json.loads(out.read_text())
     assert summary["policy"] == "learned-fix-config" and summary["trials"] == 1
+    pictures = sorted(p.name for p in (tmp_path / "png").iterdir())
+    assert pictures == ["trial_000.png", "trial_000_grasp.png", "trial_000_scores.png"]
+    assert all((tmp_path / "png" / p).stat().st_size > 5000 for p in pictures)
 
 
 @pytest.mark.parametrize(
