@@ -84,10 +84,10 @@ def plot(run: Path, out: Path, greedy: list[dict], title: str | None = None) -> 
         ax.errorbar(xs, rates, yerr=[[r - lo for r, (lo, _) in zip(rates, lo_hi)], [hi - r for r, (_, hi) in zip(rates, lo_hi)]],
                     marker="o", color="tab:green", capsize=3)
         for g in greedy:
-            ax.annotate(f"{g['success_rate']:.2f}", (g["inserted"], g["success_rate"]), textcoords="offset points",
-                        xytext=(4, 6), fontsize=7)
+            ax.annotate(f"{g['success_rate']:.2f} (n={g['trials']})", (g["inserted"], g["success_rate"]),
+                        textcoords="offset points", xytext=(4, 6), fontsize=7)
         ax.set_xlabel("trials collected")
-        ax.set_ylabel(f"greedy success ({greedy[-1]['mode']}, {greedy[-1]['trials']} trials)")
+        ax.set_ylabel(f"greedy success ({greedy[-1]['mode']}), 95% CI")
         ax.set_ylim(0, 1)
     fig.suptitle(title or f"{run}", fontsize=9)
     fig.tight_layout()
