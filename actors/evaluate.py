@@ -66,9 +66,9 @@ from common.config import Config, load_config, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
-from common.runtime import ray_init
 from common.network import build_model
 from common.policy import LearnedPolicy
+from common.runtime import ray_init
 
 FORMAT = "adagrasp-scale-evaluation/1"
 """Value of the ``format`` key of every result JSON."""
