@@ -14,7 +14,15 @@ from common.camera import Intrinsics, depth_from_opengl_zbuffer, look_at, opengl
 from common.config import GripperGridConfig
 from common.geometry import Transform
 from common.gripper import GripperModel, get_gripper
-from common.gripper_encoding import GripperEncoder, _GripperField, encode_gripper, grid_points, gripper_key
+from common.gripper_encoding import (
+    SAMPLES_PER_VOXEL,
+    GripperEncoder,
+    _GripperField,
+    _PartField,
+    encode_gripper,
+    grid_points,
+    gripper_key,
+)
 from common.tsdf import TSDFVolume
 
 
@@ -90,7 +98,7 @@ def test_encoding_matches_tsdf_fused_from_rendered_depth(name):
 def test_mesh_distance_close_to_exact_signed_distance(name):
     """Nearest-sample distances against trimesh's exact signed distance to the same hulls."""
     grid = GripperGridConfig()
-    field = _GripperField(get_gripper(name), 1.0, grid)
+    field = _GripperField(get_gripper(name), grid)
     got = field.sdf(0.5).ravel().astype(np.float64)
     pts = grid_points(grid).reshape(-1, 3)
     band = np.abs(got) < grid.truncation * 0.9
@@ -103,6 +111,34 @@ def test_mesh_distance_close_to_exact_signed_distance(name):
     assert np.median(err) < 1e-3
     assert np.percentile(err, 99) < 0.5 * grid.voxel_size
     assert np.mean((np.sign(got[band]) == np.sign(exact)) | (np.abs(exact) < 1e-3)) > 0.995
+
+
+@pytest.mark.parametrize("name", ["underactuated-0", "panda_hand", "xarm_gripper"])
+def test_field_at_any_scale_matches_the_scaled_gripper(name):
+    """One field built at scale 1 (mesh parts tabulated once) against the exact per-part distance of
+    the gripper loaded at each scale; the scales run large to small, so the tables must widen."""
+    grid = GripperGridConfig()
+    spec = get_gripper(name)
+    field = _GripperField(spec, grid)
+    pts = grid_points(grid).reshape(-1, 3)
+    trunc = grid.truncation
+    errs = []
+    for scale, opening in ((1.2, 1.0), (0.9, 0.4), (0.6, 0.7)):
+        got = field.sdf(opening, scale).ravel().astype(np.float64)
+        exact = np.full(len(pts), trunc)
+        for part, T in GripperModel(spec, scale).posed_parts(opening):
+            local = (pts - T[:3, 3]) @ T[:3, :3]
+            part_field = _PartField(part, grid.voxel_size / SAMPLES_PER_VOXEL, grid.voxel_size)
+            exact = np.minimum(exact, part_field.exact(local, trunc))
+        band = np.abs(exact) < 0.9 * trunc
+        assert band.sum() > 200
+        errs.append(np.abs(got[band] - exact[band]) / grid.voxel_size)
+    err = np.concatenate(errs)
+    if name.startswith("underactuated"):
+        assert err.max() < 1e-4
+    else:
+        assert np.median(err) < 0.06
+        assert np.percentile(err, 99) < 0.4
 
 
 def test_primitive_encoding_is_exact_for_a_box_finger():
