@@ -17,15 +17,17 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
 - ``speed_option_accuracy`` (with ``--accuracy-steps N``): the paper's model and both speed
   options trained N steps on the same synthetic grasping task (:func:`synth_accuracy`) and
   scored on held-out scenes;
-- ``threads``: torch intra-op threads; ``device``; ``thp``: whether torch's CPU allocator was
-  asked for transparent huge pages (``--thp`` sets ``THP_MEM_ALLOC_ENABLE=1`` before torch
-  loads: large activations then cost far fewer page faults); ``load_avg``: the machine's 1-minute
-  load average before and after (the figures are only comparable on an otherwise idle machine).
+- ``threads``: torch intra-op threads; ``device``; ``process_env``: whether the process ran with
+  the allocator settings every launcher process gets (``--process-env`` applies
+  ``common.runtime.apply_process_env`` before torch loads: transparent huge pages and glibc
+  keeping freed buffers, so large activations are not faulted in and zeroed again every step);
+  ``load_avg``: the machine's 1-minute load average before and after (the figures are only
+  comparable on an otherwise idle machine).
 
 Usage::
 
     python tests/bench/bench_model.py                 # both scales, 3 repeats
-    python tests/bench/bench_model.py --repeats 5 --threads 2 --thp --skip-paper-train
+    python tests/bench/bench_model.py --repeats 5 --threads 2 --process-env --skip-paper-train
 """
 
 from __future__ import annotations
@@ -38,13 +40,15 @@ import sys
 import time
 from pathlib import Path
 
-if __name__ == "__main__" and "--thp" in sys.argv:
-    os.environ["THP_MEM_ALLOC_ENABLE"] = "1"  # read by torch's CPU allocator on its first allocation
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from common.runtime import apply_process_env  # noqa: E402
+
+if __name__ == "__main__" and "--process-env" in sys.argv:
+    apply_process_env()  # before torch allocates anything
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from common.config import load_config  # noqa: E402
 from common.network import build_model, count_parameters  # noqa: E402
@@ -320,7 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-paper", action="store_true", help="skip every paper-scale measurement")
     ap.add_argument("--skip-paper-train", action="store_true", help="skip the paper-scale training step")
     ap.add_argument("--skip-kernel", action="store_true", help="skip the kernel-rotation option")
-    ap.add_argument("--thp", action="store_true", help="transparent huge pages for torch's CPU allocator")
+    ap.add_argument("--process-env", action="store_true",
+                    help="run with the launcher's allocator settings (common/runtime.py), applied before torch loads")
     ap.add_argument("--accuracy-steps", type=int, default=0,
                     help="train scene- and kernel-rotation models this many steps on the synthetic task (0: skip)")
     ap.add_argument("--accuracy-seeds", type=int, default=3, help="seeds of the synthetic accuracy comparison")
@@ -344,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         "params": count_parameters(build_model(default)),
         "threads": torch.get_num_threads(),
         "device": "cpu",
-        "thp": os.environ.get("THP_MEM_ALLOC_ENABLE") == "1",
+        "process_env": args.process_env,
         "load_avg_before": os.getloadavg()[0],
     }
     out["infer_default_s"], out["gripper_kernels_default_s"] = bench_infer(default, args.repeats)
