@@ -427,12 +427,3 @@ def test_parallel_jaw_lifts_across_scales_and_seeds():
     ok = [lift_test(spec, s, "box", 0.04, offset=(0.005 * (i % 3 - 1), 0.004), yaw=0.2 * i).success
           for i, s in enumerate((0.8, 0.9, 1.0, 1.1, 1.2))]
     assert all(ok), ok
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", REAL)
-def test_real_grippers_pass_the_full_check(name):
-    from actors.gripper_cli import check_gripper
-
-    r = check_gripper(get_gripper(name))
-    assert r.passed, r.reasons
