@@ -14,7 +14,9 @@ Two settings stop that:
   asking the kernel for zeroed pages (the process keeps its peak memory, as a caching allocator
   does). glibc reads these at process start: Ray workers get them through the job's
   ``runtime_env``; the running launcher process applies the same values with ``mallopt``.
-  Measured figures: tests/bench/bench_model.py ``--process-env`` against a run without it.
+  Measured figures: tests/bench/bench_model.py ``--process-env`` against a run without it
+  (docs/RESULTS.md). Memory: in a 42-minute default-config training run the learner's
+  anonymous resident memory grew to 4.4 GB in its first 30 minutes and then stayed there.
 
 Where the kernel offers no transparent huge pages, or the C library is not glibc, the
 corresponding setting changes nothing.
