@@ -12,7 +12,7 @@ Signed distance per part, evaluated only on the grid block that the part's posed
   surface samples (spacing a third of a voxel, KD-tree in the part frame), signed by that
   sample's face normal, or by the exact convex inside test where the normal is ambiguous (near
   edges and corners) or no sample lies within the truncation. This is tabulated once per part
-  on a lattice one voxel apart; an encoding interpolates the table trilinearly (within 0.3
+  on a lattice one voxel apart; an encoding interpolates the table trilinearly (within 0.31
   voxel of the direct evaluation at the 99th percentile on the real grippers).
 
 Everything is built once per gripper and grid at scale 1: a gripper at scale ``s`` is the same
