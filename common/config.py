@@ -203,10 +203,12 @@ class ModelConfig:
     train_stem: bool = True
     """Train the scene encoder's first conv block; false keeps it at its initialisation (a
     training speed option: its full-resolution backward pass is skipped; see common/network.py)."""
-    scene_chunk: int = 1
-    """Rotated scenes encoded per batch at inference (bounds memory; results do not depend on it)."""
-    decoder_chunk: int = 16
-    """Score maps decoded per batch at inference (bounds memory; results do not depend on it)."""
+    scene_chunk: int = 0
+    """Rotated scenes encoded per batch at inference (bounds memory; results do not depend on
+    it); 0 = per device: 1 on the CPU, all rotations on a GPU."""
+    decoder_chunk: int = 0
+    """Score maps decoded per batch at inference (bounds memory; results do not depend on it);
+    0 = per device: 16 on the CPU, 256 on a GPU."""
     min_surface_height: float = 0.0
     """Learned policies only pick cells higher than this (m); 0 = any observed cell of the action
     square (the paper's valid mask)."""
@@ -346,8 +348,8 @@ _RANGES: dict[str, tuple[float, float]] = {
     "gripper_grid.truncation_voxels": (1.0, 100.0),
     "model.rotations": (1, 64),
     "model.channels": (1, 512),
-    "model.scene_chunk": (1, 1024),
-    "model.decoder_chunk": (1, 100000),
+    "model.scene_chunk": (0, 1024),
+    "model.decoder_chunk": (0, 100000),
     "model.min_surface_height": (0.0, 1.0),
     "model.decoder_width": (2, 4096),
     "replay.shards": (1, 1024),

@@ -33,10 +33,11 @@ training speed option) keeps the scene encoder's first conv block (2 -> 16 chann
 resolution, with its batch-norm affine) at its initialisation, which skips its backward pass.
 
 Inference (:meth:`AdaGraspNet.predict`) encodes the scene once per rotation (``model.scene_chunk``
-rotations per batch) and shares it across every opening of every gripper; gripper kernels are
-cached per (key, weights version); the correlation of all rotations with all kernels is one
-call (``model.correlation``: ``fft``, or ``grouped`` -- one grouped convolution, slower on CPU
-for 32 x 32 kernels); the maps are decoded ``model.decoder_chunk`` at a time. Implementation:
+rotations per batch; by default 1 on the CPU and all on a GPU) and shares it across every
+opening of every gripper; gripper kernels are cached per (key, weights version); the
+correlation of all rotations with all kernels is one call (``model.correlation``: ``fft``, or
+``grouped`` -- one grouped convolution, slower on CPU for 32 x 32 kernels); the maps are decoded
+``model.decoder_chunk`` at a time (by default 16 on the CPU, 256 on a GPU). Implementation:
 3-D activations are channels-last (oneDNN's fast layout), rotations are a 4-tap bilinear gather
 (``embedding_bag``) that writes that layout directly, and on CPU in eval mode each conv runs with
 its batch norm folded in and its bias, ReLU and residual add fused (oneDNN ``_convolution_pointwise``).
@@ -610,8 +611,9 @@ class AdaGraspNet(nn.Module):
             corr = self.cross_correlate(feats, rotated, "all")[0]  # (R * N, C, Lx, Ly), rotation-major
             return self._decode_probs(corr, None).view(R, n, *self.scene_shape[:2]).transpose(0, 1)
         chunks = []
-        for r0 in range(0, R, self.scene_chunk):
-            th = thetas[r0 : r0 + self.scene_chunk]
+        step = self.scene_chunk or (R if scene.device.type == "cuda" else 1)
+        for r0 in range(0, R, step):
+            th = thetas[r0 : r0 + step]
             feats = self.encode_scene(scene, th)  # (r, C, Fx, Fy)
             if kernels is None:
                 chunks.append(self._decode_probs(feats, -th).unsqueeze(0))
@@ -625,10 +627,11 @@ class AdaGraspNet(nn.Module):
     def _decode_probs(self, corr: torch.Tensor, back: torch.Tensor | None) -> torch.Tensor:
         """Maps (M, C, Lx, Ly) -> success probabilities (M, X, Y), turned back by ``back`` (M,) rad if given."""
         outs = []
-        for m in range(0, corr.shape[0], self.decoder_chunk):
-            logits = self.decode(corr[m : m + self.decoder_chunk])
+        step = self.decoder_chunk or (256 if corr.device.type == "cuda" else 16)
+        for m in range(0, corr.shape[0], step):
+            logits = self.decode(corr[m : m + step])
             if back is not None:
-                logits = self.rotate_maps(logits, back[m : m + self.decoder_chunk])
+                logits = self.rotate_maps(logits, back[m : m + step])
             outs.append(torch.softmax(logits, dim=1)[:, SUCCESS])
         return torch.cat(outs)
 

@@ -87,10 +87,13 @@ class Learner:
             if n > 0 and max_seconds is not None and time.perf_counter() - t0 >= max_seconds:
                 break
             batch = self.replay.sample(self.cfg.learner.batch_size)
-            scene, action = augment_batch(
-                batch.scene, batch.action, self.cfg.model.rotations, self.cfg.learner.augment_prob, self.generator
+            scene, action = augment_batch(  # on the learner's device: the scene resampling is the heavy part
+                batch.scene.to(self.device, non_blocking=True),
+                batch.action,
+                self.cfg.model.rotations,
+                self.cfg.learner.augment_prob,
+                self.generator,
             )
-            scene = scene.to(self.device, non_blocking=True)
             gripper = batch.gripper.to(self.device, non_blocking=True)
             action = action.to(self.device)
             label = batch.label.to(self.device)

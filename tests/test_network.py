@@ -59,7 +59,7 @@ def random_gripper(cfg, n: int, seed: int) -> torch.Tensor:
 def loop_probs(model, scene, gripper) -> torch.Tensor:
     """(S, R, X, Y) by one forward_train call per opening and rotation."""
     R = model.rotations
-    out = torch.zeros(gripper.shape[0], R, *model.scene_shape[:2])
+    out = torch.zeros(gripper.shape[0], R, *model.scene_shape[:2], device=model.device)
     with torch.no_grad():
         for s in range(gripper.shape[0]):
             for k in range(R):

@@ -7,8 +7,14 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   rotations with ``model.rotate=scene`` (the paper's method), gripper kernels cached (as actors
   run it); ``gripper_kernels_default_s`` / ``_paper_s``: encoding the 5 kernels once;
 - ``infer_default_kernel_s`` / ``infer_paper_kernel_s``: the same with ``model.rotate=kernel``;
+- ``infer_paper_g5_s``: the paper-scale scene for 5 grippers x 5 openings x 16 rotations at once
+  (divide by 5 for seconds per gripper);
 - ``train_step_default_s`` / ``train_step_paper_s``: one batch-8 step (forward of each sample's
   executed rotation, loss, backward, Adam);
+- ``learner_step_default_s`` / ``learner_step_paper_s``: one :meth:`learner.learner.Learner.train`
+  step as the learner runs it (batch moved to the device, rotation/shift augmentation there,
+  the step, scores back to the replay), fed from batches held in memory instead of the Zarr
+  replay, so that replay reads are not part of the figure (tests/bench/bench_replay.py has those);
 - ``kernel_rotation_consistency``: accuracy proxy of the kernel-rotation option on an untrained
   seeded model (see :func:`rotation_consistency`), per mode: mean |p(rot90 scene, k + R/4) -
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
@@ -17,7 +23,11 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
 - ``speed_option_accuracy`` (with ``--accuracy-steps N``): the paper's model and both speed
   options trained N steps on the same synthetic grasping task (:func:`synth_accuracy`) and
   scored on held-out scenes;
-- ``threads``: torch intra-op threads; ``device``; ``process_env``: whether the process ran with
+- ``threads``: torch intra-op threads; ``device`` (``--device``; on CUDA every timed run ends
+  with a device synchronisation, and ``gpu``, ``torch``, the TF32 settings, the peak allocated
+  memory ``cuda_peak_gib`` and ``cuda_cpu_max_abs_diff_default``, the largest difference between
+  the default model's probabilities on the GPU and on the CPU for the same scene, are added);
+  ``process_env``: whether the process ran with
   the allocator settings every launcher process gets (``--process-env`` applies
   ``common.runtime.apply_process_env`` before torch loads: transparent huge pages and glibc
   keeping freed buffers, so large activations are not faulted in and zeroed again every step);
@@ -28,6 +38,7 @@ Usage::
 
     python tests/bench/bench_model.py                 # both scales, 3 repeats
     python tests/bench/bench_model.py --repeats 5 --threads 2 --process-env --skip-paper-train
+    python tests/bench/bench_model.py --device cuda --repeats 10 --set model.scene_chunk=16
 """
 
 from __future__ import annotations
@@ -39,6 +50,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -52,6 +64,7 @@ import torch  # noqa: E402
 
 from common.config import load_config  # noqa: E402
 from common.network import build_model, count_parameters  # noqa: E402
+from learner.learner import Learner  # noqa: E402
 
 
 def scene_of(cfg, batch: int, seed: int) -> torch.Tensor:
@@ -83,33 +96,92 @@ def gripper_of(cfg, n: int, seed: int) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
-def median_time(fn, repeats: int) -> float:
-    fn()
+def median_time(fn, repeats: int, device: torch.device) -> float:
+    """Median wall seconds of ``fn`` over ``repeats`` runs after one warm-up; on CUDA each run
+    ends with a synchronisation, so queued kernels are inside the figure."""
+
+    def run():
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    run()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        fn()
+        run()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
 
-def bench_infer(cfg, repeats: int) -> tuple[float, float]:
+def bench_infer(cfg, repeats: int, device: torch.device, grippers: int = 1) -> tuple[float, float]:
+    """(seconds per scene for ``grippers`` x 5 openings x R rotations, seconds to encode 5 kernels)."""
     torch.manual_seed(0)
-    model = build_model(cfg).eval()
-    scene = scene_of(cfg, 1, 0)
-    grip = gripper_of(cfg, 5, 0)
-    kernels = median_time(lambda: model.gripper_kernels(grip), repeats)
-    per_scene = median_time(lambda: model.predict(scene, [grip], keys=["bench"]), repeats)
+    model = build_model(cfg).to(device).eval()
+    scene = scene_of(cfg, 1, 0).to(device)
+    grips = [gripper_of(cfg, 5, g).to(device) for g in range(grippers)]
+    keys = [f"bench{g}" for g in range(grippers)]
+    kernels = median_time(lambda: model.gripper_kernels(grips[0]), repeats, device)
+    per_scene = median_time(lambda: model.predict(scene, grips, keys=keys), repeats, device)
     return per_scene, kernels
 
 
-def bench_train(cfg, repeats: int) -> float:
+class MemoryReplay:
+    """What :class:`learner.learner.Learner` reads from a replay: ``sample`` and ``update_scores``,
+    here over fixed synthetic batches (alternating labels) held in memory."""
+
+    def __init__(self, cfg, seed: int):
+        B = cfg.learner.batch_size
+        X, Y, _ = cfg.scene_grid.shape
+        gen = torch.Generator().manual_seed(seed)
+        self.batch = SimpleNamespace(
+            scene=scene_of(cfg, B, seed),
+            gripper=gripper_of(cfg, B, seed),
+            action=torch.stack(
+                [
+                    torch.randint(X // 4, 3 * X // 4, (B,), generator=gen),
+                    torch.randint(Y // 4, 3 * Y // 4, (B,), generator=gen),
+                    torch.randint(cfg.model.rotations, (B,), generator=gen),
+                    torch.zeros(B, dtype=torch.int64),
+                ],
+                dim=1,
+            ),
+            label=(torch.arange(B) % 2).float(),
+            index=torch.zeros(B, 2, dtype=torch.int64),
+        )
+
+    def sample(self, batch_size: int):
+        assert batch_size == self.batch.scene.shape[0], batch_size
+        return self.batch
+
+    def update_scores(self, index, scores) -> None:
+        assert len(index) == len(scores)
+
+
+def bench_learner(cfg, repeats: int, device: torch.device) -> float:
+    """Seconds per :meth:`Learner.train` step (augmentation probability as configured)."""
     torch.manual_seed(0)
-    model = build_model(cfg).train()
+    learner = Learner(cfg, MemoryReplay(cfg, 2), device=device, seed=0)
+    return median_time(lambda: learner.train(1), repeats, device)
+
+
+def cuda_cpu_diff(cfg, device: torch.device) -> float:
+    """Largest |p_gpu - p_cpu| over the default model's maps of one scene (1 gripper x 5 openings)."""
+    torch.manual_seed(0)
+    model = build_model(cfg).eval()
+    scene, grip = scene_of(cfg, 1, 0), gripper_of(cfg, 5, 0)
+    cpu = model.predict(scene, [grip])
+    gpu = model.to(device).predict(scene.to(device), [grip.to(device)]).cpu()
+    return float((gpu - cpu).abs().max())
+
+
+def bench_train(cfg, repeats: int, device: torch.device) -> float:
+    torch.manual_seed(0)
+    model = build_model(cfg).to(device).train()
     opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
     B = cfg.learner.batch_size
-    scene = scene_of(cfg, B, 1)
-    grip = gripper_of(cfg, B, 1)
+    scene = scene_of(cfg, B, 1).to(device)
+    grip = gripper_of(cfg, B, 1).to(device)
     gen = torch.Generator().manual_seed(0)
     X, Y, _ = cfg.scene_grid.shape
 
@@ -117,13 +189,13 @@ def bench_train(cfg, repeats: int) -> float:
         k = torch.randint(cfg.model.rotations, (B,), generator=gen)
         action = torch.stack([torch.randint(X, (B,), generator=gen), torch.randint(Y, (B,), generator=gen), k], dim=1)
         label = torch.arange(B) % 2
-        logits = model.forward_train(scene, grip, k)
+        logits = model.forward_train(scene, grip, k.to(device))
         loss = model.loss(logits, action, label)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
 
-    return median_time(step, repeats)
+    return median_time(step, repeats, device)
 
 
 def rotation_consistency(cfg, seeds: int = 2) -> dict:
@@ -320,6 +392,9 @@ def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[st
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--device", default="cpu", help="torch device of the timed runs: cpu | cuda | cuda:N")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override applied to both scales (repeatable), e.g. model.scene_chunk=16")
     ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     ap.add_argument("--skip-paper", action="store_true", help="skip every paper-scale measurement")
     ap.add_argument("--skip-paper-train", action="store_true", help="skip the paper-scale training step")
@@ -343,26 +418,46 @@ def main(argv: list[str] | None = None) -> int:
         acc = synth_accuracy(args.accuracy_steps or 300, seeds=args.accuracy_seeds, options=options)
         print(json.dumps({"speed_option_accuracy": acc}))
         return 0
-    default = load_config("default")
-    paper = load_config("paper")
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        ap.error(f"--device {args.device}: torch {torch.__version__} sees no CUDA device")
+
+    def config(name: str, *extra: str):
+        return load_config(name, list(args.set) + list(extra))
+
+    default = config("default")
+    paper = config("paper")
+    n = args.repeats
     out = {
         "params": count_parameters(build_model(default)),
         "threads": torch.get_num_threads(),
-        "device": "cpu",
+        "device": str(device),
+        "overrides": list(args.set),
         "process_env": args.process_env,
         "load_avg_before": os.getloadavg()[0],
     }
-    out["infer_default_s"], out["gripper_kernels_default_s"] = bench_infer(default, args.repeats)
-    out["train_step_default_s"] = bench_train(default, args.repeats)
+    if device.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(device)
+        out["torch"] = torch.__version__
+        out["cudnn_allow_tf32"] = torch.backends.cudnn.allow_tf32
+        out["matmul_allow_tf32"] = torch.backends.cuda.matmul.allow_tf32
+        out["cuda_cpu_max_abs_diff_default"] = cuda_cpu_diff(default, device)
+    out["infer_default_s"], out["gripper_kernels_default_s"] = bench_infer(default, n, device)
+    out["train_step_default_s"] = bench_train(default, n, device)
+    out["learner_step_default_s"] = bench_learner(default, n, device)
     if not args.skip_kernel:
-        out["infer_default_kernel_s"] = bench_infer(load_config("default", ["model.rotate=kernel"]), args.repeats)[0]
+        out["infer_default_kernel_s"] = bench_infer(config("default", "model.rotate=kernel"), n, device)[0]
     if not args.skip_paper:
-        out["infer_paper_s"], out["gripper_kernels_paper_s"] = bench_infer(paper, args.repeats)
+        out["infer_paper_s"], out["gripper_kernels_paper_s"] = bench_infer(paper, n, device)
+        out["infer_paper_g5_s"] = bench_infer(paper, n, device, grippers=5)[0]
         if not args.skip_kernel:
-            out["infer_paper_kernel_s"] = bench_infer(load_config("paper", ["model.rotate=kernel"]), args.repeats)[0]
+            out["infer_paper_kernel_s"] = bench_infer(config("paper", "model.rotate=kernel"), n, device)[0]
         if not args.skip_paper_train:
-            out["train_step_paper_s"] = bench_train(paper, args.repeats)
-            out["train_step_paper_frozen_stem_s"] = bench_train(load_config("paper", ["model.train_stem=false"]), args.repeats)
+            out["train_step_paper_s"] = bench_train(paper, n, device)
+            out["learner_step_paper_s"] = bench_learner(paper, n, device)
+            out["train_step_paper_frozen_stem_s"] = bench_train(config("paper", "model.train_stem=false"), n, device)
+    if device.type == "cuda":
+        out["cuda_peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
     if not args.skip_kernel:
         out["kernel_rotation_consistency"] = rotation_consistency(None)
     if args.accuracy_steps > 0:
