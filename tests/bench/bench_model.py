@@ -318,10 +318,12 @@ SPEED_OPTIONS = {
 compared by :func:`synth_accuracy`."""
 
 
-def synth_accuracy(steps: int, eval_scenes: int = 30, seeds: int = 3, options: list[str] | None = None) -> dict:
+def synth_accuracy(
+    steps: int, eval_scenes: int = 30, seeds: int = 3, options: list[str] | None = None, device: str = "cpu"
+) -> dict:
     """:func:`synth_accuracy_one` for seeds 0..seeds-1: per option the mean and per-seed metrics."""
     options = list(SPEED_OPTIONS) if options is None else options
-    runs = [synth_accuracy_one(steps, eval_scenes, seed, options) for seed in range(seeds)]
+    runs = [synth_accuracy_one(steps, eval_scenes, seed, options, device) for seed in range(seeds)]
     out = {"steps": steps, "eval_scenes": eval_scenes, "seeds": seeds, "grid": runs[0]["grid"]}
     for mode in options:
         out[mode] = {
@@ -331,7 +333,7 @@ def synth_accuracy(steps: int, eval_scenes: int = 30, seeds: int = 3, options: l
     return out
 
 
-def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[str]) -> dict:
+def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[str], device: str = "cpu") -> dict:
     """Train the paper's model and each speed option on the same synthetic data; held-out metrics.
 
     Each step: batch 8, half successes and half failures drawn from the label maps of fresh
@@ -343,9 +345,9 @@ def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[st
     for mode in options:
         cfg = load_config("default", SYNTH + SPEED_OPTIONS[mode])
         torch.manual_seed(seed)
-        model = build_model(cfg).train()
+        model = build_model(cfg).to(device).train()
         opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
-        grip = synth_gripper(cfg)
+        grip = synth_gripper(cfg).to(device)
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
         for _ in range(steps):
@@ -361,19 +363,21 @@ def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[st
                 grips.append(grip[s : s + 1])
                 actions.append((i, j, k, s))
                 labels.append(int(want))
-            action = torch.tensor(actions)
-            logits = model.forward_train(torch.cat(scenes), torch.cat(grips), action[:, 2])
-            loss = model.loss(logits, action, torch.tensor(labels))
+            action = torch.tensor(actions, device=device)
+            logits = model.forward_train(torch.cat(scenes).to(device), torch.cat(grips), action[:, 2])
+            loss = model.loss(logits, action, torch.tensor(labels, device=device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+        if torch.device(device).type == "cuda":
+            torch.cuda.synchronize(device)
         train_s = time.perf_counter() - t0
         model.eval()
         erng = np.random.default_rng(10_000 + seed)
         top1, acc_pos, acc_neg = [], [], []
         for _ in range(eval_scenes):
             scene, lab, near = synth_scene(cfg, erng)
-            probs = model.predict(scene, [grip])[0].numpy()  # (S, R, X, Y)
+            probs = model.predict(scene.to(device), [grip])[0].cpu().numpy()  # (S, R, X, Y)
             region = np.broadcast_to(near, probs.shape)
             best = np.unravel_index(int(np.argmax(np.where(region, probs, -1))), probs.shape)
             top1.append(bool(lab[best]))
@@ -415,7 +419,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"--options: unknown {unknown}; known: {list(SPEED_OPTIONS)}")
     if args.only_accuracy:
-        acc = synth_accuracy(args.accuracy_steps or 300, seeds=args.accuracy_seeds, options=options)
+        acc = synth_accuracy(args.accuracy_steps or 300, seeds=args.accuracy_seeds, options=options, device=args.device)
         print(json.dumps({"speed_option_accuracy": acc}))
         return 0
     device = torch.device(args.device)
@@ -461,7 +465,9 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_kernel:
         out["kernel_rotation_consistency"] = rotation_consistency(None)
     if args.accuracy_steps > 0:
-        out["speed_option_accuracy"] = synth_accuracy(args.accuracy_steps, seeds=args.accuracy_seeds, options=options)
+        out["speed_option_accuracy"] = synth_accuracy(
+            args.accuracy_steps, seeds=args.accuracy_seeds, options=options, device=args.device
+        )
     out["load_avg_after"] = os.getloadavg()[0]
     print(json.dumps(out))
     return 0
