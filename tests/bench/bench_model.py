@@ -38,7 +38,7 @@ Usage::
 
     python tests/bench/bench_model.py                 # both scales, 3 repeats
     python tests/bench/bench_model.py --repeats 5 --threads 2 --process-env --skip-paper-train
-    python tests/bench/bench_model.py --device cuda --repeats 10 --set model.scene_chunk=16
+    python tests/bench/bench_model.py --device cuda --repeats 10 --set model.scene_chunk=1
 """
 
 from __future__ import annotations
