@@ -16,7 +16,10 @@ Usage::
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
+import torch
 
 from common.config import Config, GripperGridConfig, SceneGridConfig, load_config
 from common.geometry import voxel_centers
@@ -200,3 +203,36 @@ def numbered_trial(cfg: Config, i: int, rng: np.random.Generator | None = None, 
     n_objects = kw.pop("n_objects", 1)
     n_obstacles = kw.pop("n_obstacles", 0)
     return synthetic_trial(rng, cfg.scene_grid, cfg.gripper_grid, n_objects, n_obstacles, **kw)
+
+
+class FixedBatchReplay:
+    """The part of the replay client a :class:`learner.learner.Learner` calls, serving one fixed
+    batch: for learner tests and benchmarks that leave replay reads out.
+
+    scene (B, 2, X, Y, Z) float32, gripper (B, 2, gX, gY, gZ) float32, action (B, 4) int64
+    (i, j, k, s), label (B,) float32 (1 = success), all on the CPU as the client returns them.
+    ``sample(B)`` returns that batch every time (with ``index`` (B, 2) int64 = (0, b) and
+    ``score`` zeros); ``update_scores`` keeps every call's scores in ``scores``.
+    """
+
+    def __init__(self, scene: torch.Tensor, gripper: torch.Tensor, action: torch.Tensor, label: torch.Tensor):
+        b = scene.shape[0]
+        assert scene.dim() == 5 and gripper.dim() == 5 and gripper.shape[0] == b, (scene.shape, gripper.shape)
+        assert action.shape == (b, 4) and label.shape == (b,), (action.shape, label.shape)
+        self.batch = SimpleNamespace(
+            scene=scene,
+            gripper=gripper,
+            action=action,
+            label=label,
+            score=torch.zeros(b),
+            index=torch.stack([torch.zeros(b, dtype=torch.int64), torch.arange(b)], dim=1),
+        )
+        self.scores: list[np.ndarray] = []
+
+    def sample(self, batch_size: int) -> SimpleNamespace:
+        assert batch_size == self.batch.scene.shape[0], f"sample: batch {batch_size}, fixed batch {self.batch.scene.shape[0]}"
+        return self.batch
+
+    def update_scores(self, index, scores) -> None:
+        assert len(index) == len(scores), (len(index), len(scores))
+        self.scores.append(np.asarray(scores))

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from common.config import load_config
+from replay.synthetic import FixedBatchReplay
 from test_network import SMALL, loop_probs, random_gripper, random_scene, small_model
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
@@ -41,36 +42,23 @@ def test_cuda_predict_equals_loop_and_cpu(overrides):
     assert float((probs.cpu() - on_cpu).abs().max()) <= 1e-4
 
 
-class FixedReplay:
-    """The replay interface the learner reads (sample, update_scores) over one fixed batch."""
-
-    def __init__(self, cfg):
-        B = cfg.learner.batch_size
-        X, Y, _ = cfg.scene_grid.shape
-        gen = torch.Generator().manual_seed(5)
-        self.batch = type("Batch", (), {})()
-        self.batch.scene = torch.cat([random_scene(cfg, b) for b in range(B)])
-        self.batch.gripper = torch.cat([random_gripper(cfg, 1, b) for b in range(B)])
-        self.batch.action = torch.stack(
-            [
-                torch.randint(8, X - 8, (B,), generator=gen),
-                torch.randint(8, Y - 8, (B,), generator=gen),
-                torch.randint(cfg.model.rotations, (B,), generator=gen),
-                torch.zeros(B, dtype=torch.int64),
-            ],
-            dim=1,
-        )
-        self.batch.label = (torch.arange(B) % 2).float()
-        self.batch.index = torch.stack([torch.zeros(B, dtype=torch.int64), torch.arange(B)], dim=1)
-        self.scores = []
-
-    def sample(self, batch_size):
-        assert batch_size == self.batch.scene.shape[0]
-        return self.batch
-
-    def update_scores(self, index, scores):
-        assert len(index) == len(scores)
-        self.scores.append(scores)
+def fixed_replay(cfg) -> FixedBatchReplay:
+    """One batch of seeded random scenes, grippers and actions, alternating labels."""
+    B = cfg.learner.batch_size
+    X, Y, _ = cfg.scene_grid.shape
+    gen = torch.Generator().manual_seed(5)
+    action = torch.stack(
+        [
+            torch.randint(8, X - 8, (B,), generator=gen),
+            torch.randint(8, Y - 8, (B,), generator=gen),
+            torch.randint(cfg.model.rotations, (B,), generator=gen),
+            torch.zeros(B, dtype=torch.int64),
+        ],
+        dim=1,
+    )
+    scene = torch.cat([random_scene(cfg, b) for b in range(B)])
+    gripper = torch.cat([random_gripper(cfg, 1, b) for b in range(B)])
+    return FixedBatchReplay(scene, gripper, action, (torch.arange(B) % 2).float())
 
 
 def learner_step(cfg, device: str):
@@ -79,7 +67,7 @@ def learner_step(cfg, device: str):
     from learner.learner import Learner
 
     torch.manual_seed(3)
-    replay = FixedReplay(cfg)
+    replay = fixed_replay(cfg)
     learner = Learner(cfg, replay, device=device, seed=7)
     loss = learner.train(1).loss
     names = {id(p): n for n, p in learner.model.named_parameters()}

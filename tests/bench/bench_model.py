@@ -13,8 +13,8 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   executed rotation, loss, backward, Adam);
 - ``learner_step_default_s`` / ``learner_step_paper_s``: one :meth:`learner.learner.Learner.train`
   step as the learner runs it (batch moved to the device, rotation/shift augmentation there,
-  the step, scores back to the replay), fed from batches held in memory instead of the Zarr
-  replay, so that replay reads are not part of the figure (tests/bench/bench_replay.py has those);
+  the step, scores back to the replay), fed one fixed batch held in memory
+  (:class:`replay.synthetic.FixedBatchReplay`) instead of the Zarr replay, so that replay reads are not part of the figure (tests/bench/bench_replay.py has those);
 - ``kernel_rotation_consistency``: accuracy proxy of the kernel-rotation option on an untrained
   seeded model (see :func:`rotation_consistency`), per mode: mean |p(rot90 scene, k + R/4) -
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
@@ -50,7 +50,6 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -65,6 +64,7 @@ import torch  # noqa: E402
 from common.config import load_config  # noqa: E402
 from common.network import build_model, count_parameters  # noqa: E402
 from learner.learner import Learner  # noqa: E402
+from replay.synthetic import FixedBatchReplay  # noqa: E402
 
 
 def scene_of(cfg, batch: int, seed: int) -> torch.Tensor:
@@ -126,42 +126,23 @@ def bench_infer(cfg, repeats: int, device: torch.device, grippers: int = 1) -> t
     return per_scene, kernels
 
 
-class MemoryReplay:
-    """What :class:`learner.learner.Learner` reads from a replay: ``sample`` and ``update_scores``,
-    here over fixed synthetic batches (alternating labels) held in memory."""
-
-    def __init__(self, cfg, seed: int):
-        B = cfg.learner.batch_size
-        X, Y, _ = cfg.scene_grid.shape
-        gen = torch.Generator().manual_seed(seed)
-        self.batch = SimpleNamespace(
-            scene=scene_of(cfg, B, seed),
-            gripper=gripper_of(cfg, B, seed),
-            action=torch.stack(
-                [
-                    torch.randint(X // 4, 3 * X // 4, (B,), generator=gen),
-                    torch.randint(Y // 4, 3 * Y // 4, (B,), generator=gen),
-                    torch.randint(cfg.model.rotations, (B,), generator=gen),
-                    torch.zeros(B, dtype=torch.int64),
-                ],
-                dim=1,
-            ),
-            label=(torch.arange(B) % 2).float(),
-            index=torch.zeros(B, 2, dtype=torch.int64),
-        )
-
-    def sample(self, batch_size: int):
-        assert batch_size == self.batch.scene.shape[0], batch_size
-        return self.batch
-
-    def update_scores(self, index, scores) -> None:
-        assert len(index) == len(scores)
-
-
 def bench_learner(cfg, repeats: int, device: torch.device) -> float:
     """Seconds per :meth:`Learner.train` step (augmentation probability as configured)."""
+    B = cfg.learner.batch_size
+    X, Y, _ = cfg.scene_grid.shape
+    gen = torch.Generator().manual_seed(2)
+    action = torch.stack(
+        [
+            torch.randint(X // 4, 3 * X // 4, (B,), generator=gen),
+            torch.randint(Y // 4, 3 * Y // 4, (B,), generator=gen),
+            torch.randint(cfg.model.rotations, (B,), generator=gen),
+            torch.zeros(B, dtype=torch.int64),
+        ],
+        dim=1,
+    )
+    replay = FixedBatchReplay(scene_of(cfg, B, 2), gripper_of(cfg, B, 2), action, (torch.arange(B) % 2).float())
     torch.manual_seed(0)
-    learner = Learner(cfg, MemoryReplay(cfg, 2), device=device, seed=0)
+    learner = Learner(cfg, replay, device=device, seed=0)
     return median_time(lambda: learner.train(1), repeats, device)
 
 
