@@ -230,7 +230,8 @@ class FixedBatchReplay:
         self.scores: list[np.ndarray] = []
 
     def sample(self, batch_size: int) -> SimpleNamespace:
-        assert batch_size == self.batch.scene.shape[0], f"sample: batch {batch_size}, fixed batch {self.batch.scene.shape[0]}"
+        fixed = self.batch.scene.shape[0]
+        assert batch_size == fixed, f"sample: batch {batch_size}, fixed batch {fixed}"
         return self.batch
 
     def update_scores(self, index, scores) -> None:

@@ -14,7 +14,8 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
 - ``learner_step_default_s`` / ``learner_step_paper_s``: one :meth:`learner.learner.Learner.train`
   step as the learner runs it (batch moved to the device, rotation/shift augmentation there,
   the step, scores back to the replay), fed one fixed batch held in memory
-  (:class:`replay.synthetic.FixedBatchReplay`) instead of the Zarr replay, so that replay reads are not part of the figure (tests/bench/bench_replay.py has those);
+  (:class:`replay.synthetic.FixedBatchReplay`) instead of the Zarr replay, so that replay reads
+  are not part of the figure (tests/bench/bench_replay.py has those);
 - ``kernel_rotation_consistency``: accuracy proxy of the kernel-rotation option on an untrained
   seeded model (see :func:`rotation_consistency`), per mode: mean |p(rot90 scene, k + R/4) -
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
