@@ -61,7 +61,7 @@ from actors.objects import ObjectSetError, object_names
 from actors.policies import make_policy
 from actors.rollout import episode_seed
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
-from common.checkpoint import read_checkpoint
+from common.checkpoint import inference_config, read_checkpoint
 from common.config import Config, load_config, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, get_gripper, list_grippers
@@ -231,7 +231,7 @@ def make_plan(args) -> EvalPlan:
     LearnedPolicy.from_checkpoint(args.checkpoint, cfg, mode=mode)  # grid and rotation checks, one line
     encoder = GripperEncoder(cfg.gripper_grid)
     plan.encodings = [encoder.encode(spec, plan.scale, openings) for _, spec in grippers]
-    plan.model_cfg = ckpt.cfg
+    plan.model_cfg = inference_config(ckpt.cfg)
     plan.model_state = ckpt.model_state
     plan.model_version = ckpt.version
     return plan

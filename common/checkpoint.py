@@ -19,6 +19,7 @@ Call loop::
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -160,11 +161,30 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     )
 
 
-def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tuple[AdaGraspNet, Checkpoint]:
-    """The model of a checkpoint, built from its config with its weights, in eval mode on ``device``."""
+def inference_config(cfg: Config, scene_chunk: int = 0, decoder_chunk: int = 0) -> Config:
+    """``cfg`` with the inference batching ``model.scene_chunk`` / ``model.decoder_chunk`` replaced
+    (0 = chosen for the device the model runs on).
+
+    The batching bounds memory and does not change results, so a checkpoint's own values, chosen
+    for the machine it was trained on, are not the ones to run it with elsewhere.
+    """
+    if scene_chunk < 0 or decoder_chunk < 0:
+        raise ValueError(f"inference_config: scene_chunk and decoder_chunk must be >= 0, got {scene_chunk}, {decoder_chunk}")
+    batching = dataclasses.replace(cfg.model, scene_chunk=int(scene_chunk), decoder_chunk=int(decoder_chunk))
+    return dataclasses.replace(cfg, model=batching)
+
+
+def load_checkpoint(
+    path: str | Path, device: str | torch.device = "cpu", scene_chunk: int = 0, decoder_chunk: int = 0
+) -> tuple[AdaGraspNet, Checkpoint]:
+    """The model of a checkpoint, built from its config with its weights, in eval mode on ``device``.
+
+    The model runs with ``scene_chunk`` / ``decoder_chunk`` (:func:`inference_config`); ``ckpt.cfg``
+    is the checkpoint's config as saved.
+    """
     ckpt = read_checkpoint(path)
     try:
-        model = build_model(ckpt.cfg)
+        model = build_model(inference_config(ckpt.cfg, scene_chunk, decoder_chunk))
     except NetworkConfigError as e:
         raise CheckpointError(f"{path}: config: {e}") from None
     try:

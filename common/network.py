@@ -73,6 +73,13 @@ _KERNEL_CACHE_SIZE = 64
 """Gripper kernel sets kept per model (least recently used dropped first)."""
 _TAPS_CACHE_SIZE = 96
 """Rotation sampling tables kept per model (R rotations and their inverses on two grids fit)."""
+_CPU_SCENE_CHUNK, _CPU_DECODER_CHUNK = 1, 16
+"""Inference batching on the CPU when ``model.scene_chunk`` / ``model.decoder_chunk`` is 0: one
+rotated scene and 16 score maps per batch (larger batches run no faster on a few cores and need
+more memory)."""
+_GPU_DECODER_CHUNK = 256
+"""Score maps decoded per batch on a GPU when ``model.decoder_chunk`` is 0 (a GPU encodes all
+rotations of the scene in one batch)."""
 
 
 _FUSED = getattr(torch.ops.mkldnn, "_convolution_pointwise", None) if torch.backends.mkldnn.is_available() else None
@@ -102,15 +109,40 @@ class ConvBlock(nn.Module):
         self.norm = (nn.BatchNorm3d if dim == 3 else nn.BatchNorm2d)(cout) if norm else None
         self.relu = relu
         self._fn = F.conv3d if dim == 3 else F.conv2d
+        self._fold_src: tuple = ()
+        self._fold_versions: tuple = ()
+        self._fold: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def _fold_sources(self) -> tuple[torch.Tensor, ...]:
+        bn = self.norm
+        extra = () if self.conv.bias is None else (self.conv.bias,)
+        return (self.conv.weight, bn.weight, bn.bias, bn.running_mean, bn.running_var, *extra)
 
     def _folded(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Weight and bias of the convolution with the eval-mode batch norm folded in.
+
+        Without autograd the result is kept until one of its source tensors is replaced (the
+        cache holds them, so their identity is a safe key), gets new storage (``.to``, ``.data``
+        assignment) or is changed in place (torch counts in-place writes per tensor: optimiser
+        steps, ``load_state_dict``, edits under ``no_grad``), so inference folds once per weights.
+        """
+        cache = not torch.is_grad_enabled()
+        if cache:
+            src = self._fold_sources()
+            versions = tuple((t._version, t.data_ptr(), t.dtype, t.device) for t in src)
+            same = len(src) == len(self._fold_src) and all(a is b for a, b in zip(src, self._fold_src))
+            if same and versions == self._fold_versions:
+                return self._fold
         bn = self.norm
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
         bias = bn.bias - bn.running_mean * scale
         if self.conv.bias is not None:
             bias = bias + self.conv.bias * scale
         shape = (-1,) + (1,) * (self.conv.weight.dim() - 1)
-        return self.conv.weight * scale.view(shape), bias
+        folded = (self.conv.weight * scale.view(shape), bias)
+        if cache:
+            self._fold_src, self._fold_versions, self._fold = src, versions, folded
+        return folded
 
     def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
         """Conv block of ``x``; with ``residual`` (same shape as the output) the sum conv + residual
@@ -611,7 +643,7 @@ class AdaGraspNet(nn.Module):
             corr = self.cross_correlate(feats, rotated, "all")[0]  # (R * N, C, Lx, Ly), rotation-major
             return self._decode_probs(corr, None).view(R, n, *self.scene_shape[:2]).transpose(0, 1)
         chunks = []
-        step = self.scene_chunk or (R if scene.device.type == "cuda" else 1)
+        step = self.scene_chunk or (R if scene.device.type == "cuda" else _CPU_SCENE_CHUNK)
         for r0 in range(0, R, step):
             th = thetas[r0 : r0 + step]
             feats = self.encode_scene(scene, th)  # (r, C, Fx, Fy)
@@ -627,7 +659,7 @@ class AdaGraspNet(nn.Module):
     def _decode_probs(self, corr: torch.Tensor, back: torch.Tensor | None) -> torch.Tensor:
         """Maps (M, C, Lx, Ly) -> success probabilities (M, X, Y), turned back by ``back`` (M,) rad if given."""
         outs = []
-        step = self.decoder_chunk or (256 if corr.device.type == "cuda" else 16)
+        step = self.decoder_chunk or (_GPU_DECODER_CHUNK if corr.device.type == "cuda" else _CPU_DECODER_CHUNK)
         for m in range(0, corr.shape[0], step):
             logits = self.decode(corr[m : m + step])
             if back is not None:

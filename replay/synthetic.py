@@ -205,6 +205,23 @@ def numbered_trial(cfg: Config, i: int, rng: np.random.Generator | None = None, 
     return synthetic_trial(rng, cfg.scene_grid, cfg.gripper_grid, n_objects, n_obstacles, **kw)
 
 
+def random_actions(batch: int, grid_xy: tuple[int, int], rotations: int, margin: int, generator: torch.Generator) -> torch.Tensor:
+    """(batch, 4) int64 actions (i, j, k, s): cells (i, j) uniform over the scene grid
+    ``grid_xy`` = (X, Y) at least ``margin`` cells from its edge, rotation k uniform in
+    [0, rotations), opening index s = 0; drawn from ``generator`` in the order i, j, k."""
+    X, Y = grid_xy
+    assert 0 <= margin and 2 * margin < min(X, Y), (margin, grid_xy)
+    return torch.stack(
+        [
+            torch.randint(margin, X - margin, (batch,), generator=generator),
+            torch.randint(margin, Y - margin, (batch,), generator=generator),
+            torch.randint(rotations, (batch,), generator=generator),
+            torch.zeros(batch, dtype=torch.int64),
+        ],
+        dim=1,
+    )
+
+
 class FixedBatchReplay:
     """The part of the replay client a :class:`learner.learner.Learner` calls, serving one fixed
     batch: for learner tests and benchmarks that leave replay reads out.

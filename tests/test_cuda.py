@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from common.config import load_config
-from replay.synthetic import FixedBatchReplay
+from replay.synthetic import FixedBatchReplay, random_actions
 from test_network import SMALL, loop_probs, random_gripper, random_scene, small_model
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
@@ -45,17 +45,8 @@ def test_cuda_predict_equals_loop_and_cpu(overrides):
 def fixed_replay(cfg) -> FixedBatchReplay:
     """One batch of seeded random scenes, grippers and actions, alternating labels."""
     B = cfg.learner.batch_size
-    X, Y, _ = cfg.scene_grid.shape
     gen = torch.Generator().manual_seed(5)
-    action = torch.stack(
-        [
-            torch.randint(8, X - 8, (B,), generator=gen),
-            torch.randint(8, Y - 8, (B,), generator=gen),
-            torch.randint(cfg.model.rotations, (B,), generator=gen),
-            torch.zeros(B, dtype=torch.int64),
-        ],
-        dim=1,
-    )
+    action = random_actions(B, cfg.scene_grid.shape[:2], cfg.model.rotations, 8, gen)
     scene = torch.cat([random_scene(cfg, b) for b in range(B)])
     gripper = torch.cat([random_gripper(cfg, 1, b) for b in range(B)])
     return FixedBatchReplay(scene, gripper, action, (torch.arange(B) % 2).float())

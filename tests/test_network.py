@@ -400,3 +400,48 @@ def test_every_shipped_model_loads():
     for name in names:
         model, ckpt = load_checkpoint(f"model:{name}")
         assert not model.training and (shipped_models_dir() / name / "config.yaml").is_file()
+
+
+def test_folded_batch_norm_follows_weight_edits():
+    """Eval-mode inference keeps each conv's folded batch norm between calls; editing a weight
+    in place, giving it new storage or loading new weights must refold it."""
+    cfg, model = small_model("model.rotations=4", seed=5)
+    scene = random_scene(cfg, 5)
+    grip = random_gripper(cfg, 2, 5)
+
+    def fresh_probs():
+        _, fresh = small_model("model.rotations=4", seed=6)
+        fresh.load_state_dict(model.state_dict())
+        return fresh.eval().predict(scene, [grip])
+
+    before = model.predict(scene, [grip])
+    assert torch.equal(before, model.predict(scene, [grip]))
+    with torch.no_grad():
+        model.scene_encoder.conv3d[1].norm.running_var.mul_(4.0)
+    edited = model.predict(scene, [grip])
+    assert float((edited - before).abs().max()) > 1e-4 and torch.equal(edited, fresh_probs())
+    weight = model.dec_res0.conv1.conv.weight
+    weight.data = -weight.data.clone()
+    replaced = model.predict(scene, [grip])
+    assert float((replaced - edited).abs().max()) > 1e-4 and torch.equal(replaced, fresh_probs())
+    _, other = small_model("model.rotations=4", seed=7)
+    model.load_state_dict(other.state_dict())
+    assert torch.equal(model.predict(scene, [grip]), other.eval().predict(scene, [grip]))
+
+
+def test_checkpoints_run_with_batching_chosen_for_the_device(tmp_path):
+    from common.checkpoint import load_checkpoint, save_checkpoint
+
+    cfg, model = small_model("model.rotations=4", "model.scene_chunk=3", "model.decoder_chunk=5", seed=8)
+    save_checkpoint(tmp_path / "c.pt", model, cfg, step=1, version=1)
+    loaded, ckpt = load_checkpoint(tmp_path / "c.pt")
+    assert (loaded.scene_chunk, loaded.decoder_chunk) == (0, 0)
+    assert (ckpt.cfg.model.scene_chunk, ckpt.cfg.model.decoder_chunk) == (3, 5)
+    chosen, _ = load_checkpoint(tmp_path / "c.pt", scene_chunk=2, decoder_chunk=7)
+    assert (chosen.scene_chunk, chosen.decoder_chunk) == (2, 7)
+    scene, grip = random_scene(cfg, 8), random_gripper(cfg, 2, 8)
+    reference = model.predict(scene, [grip])
+    for other in (loaded, chosen):
+        assert float((other.predict(scene, [grip]) - reference).abs().max()) <= 1e-5
+    with pytest.raises(ValueError, match="scene_chunk"):
+        load_checkpoint(tmp_path / "c.pt", scene_chunk=-1)

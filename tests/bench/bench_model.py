@@ -65,7 +65,7 @@ import torch  # noqa: E402
 from common.config import load_config  # noqa: E402
 from common.network import build_model, count_parameters  # noqa: E402
 from learner.learner import Learner  # noqa: E402
-from replay.synthetic import FixedBatchReplay  # noqa: E402
+from replay.synthetic import FixedBatchReplay, random_actions  # noqa: E402
 
 
 def scene_of(cfg, batch: int, seed: int) -> torch.Tensor:
@@ -130,17 +130,8 @@ def bench_infer(cfg, repeats: int, device: torch.device, grippers: int = 1) -> t
 def bench_learner(cfg, repeats: int, device: torch.device) -> float:
     """Seconds per :meth:`Learner.train` step (augmentation probability as configured)."""
     B = cfg.learner.batch_size
-    X, Y, _ = cfg.scene_grid.shape
     gen = torch.Generator().manual_seed(2)
-    action = torch.stack(
-        [
-            torch.randint(X // 4, 3 * X // 4, (B,), generator=gen),
-            torch.randint(Y // 4, 3 * Y // 4, (B,), generator=gen),
-            torch.randint(cfg.model.rotations, (B,), generator=gen),
-            torch.zeros(B, dtype=torch.int64),
-        ],
-        dim=1,
-    )
+    action = random_actions(B, cfg.scene_grid.shape[:2], cfg.model.rotations, cfg.scene_grid.shape[0] // 4, gen)
     replay = FixedBatchReplay(scene_of(cfg, B, 2), gripper_of(cfg, B, 2), action, (torch.arange(B) % 2).float())
     torch.manual_seed(0)
     learner = Learner(cfg, replay, device=device, seed=0)
@@ -165,13 +156,11 @@ def bench_train(cfg, repeats: int, device: torch.device) -> float:
     scene = scene_of(cfg, B, 1).to(device)
     grip = gripper_of(cfg, B, 1).to(device)
     gen = torch.Generator().manual_seed(0)
-    X, Y, _ = cfg.scene_grid.shape
 
     def step():
-        k = torch.randint(cfg.model.rotations, (B,), generator=gen)
-        action = torch.stack([torch.randint(X, (B,), generator=gen), torch.randint(Y, (B,), generator=gen), k], dim=1)
+        action = random_actions(B, cfg.scene_grid.shape[:2], cfg.model.rotations, 0, gen)
         label = torch.arange(B) % 2
-        logits = model.forward_train(scene, grip, k.to(device))
+        logits = model.forward_train(scene, grip, action[:, 2].to(device))
         loss = model.loss(logits, action, label)
         opt.zero_grad(set_to_none=True)
         loss.backward()
