@@ -24,6 +24,9 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
 - ``speed_option_accuracy`` (with ``--accuracy-steps N``): the paper's model and both speed
   options trained N steps on the same synthetic grasping task (:func:`synth_accuracy`) and
   scored on held-out scenes;
+- ``*_gflop`` and ``*_gflop_per_s`` (with ``--flops``): convolution GFLOP per call of the
+  inference and training-step figures (:func:`count_gflop`) and the rate the timed median
+  implies, to compare with what the machine can do;
 - ``threads``: torch intra-op threads; ``device`` (``--device``; on CUDA every timed run ends
   with a device synchronisation, and ``gpu``, ``torch``, the TF32 settings, the peak allocated
   memory ``cuda_peak_gib`` and ``cuda_cpu_max_abs_diff_default``, the largest difference between
@@ -40,6 +43,7 @@ Usage::
     python tests/bench/bench_model.py                 # both scales, 3 repeats
     python tests/bench/bench_model.py --repeats 5 --threads 2 --process-env --skip-paper-train
     python tests/bench/bench_model.py --device cuda --repeats 10 --set model.scene_chunk=1
+    python tests/bench/bench_model.py --repeats 3 --threads 2 --process-env --skip-kernel --flops
 """
 
 from __future__ import annotations
@@ -115,16 +119,40 @@ def median_time(fn, repeats: int, device: torch.device) -> float:
     return statistics.median(times)
 
 
-def bench_infer(cfg, repeats: int, device: torch.device, grippers: int = 1) -> tuple[float, float]:
-    """(seconds per scene for ``grippers`` x 5 openings x R rotations, seconds to encode 5 kernels)."""
+def infer_fns(cfg, device: torch.device, grippers: int = 1):
+    """(one scene's inference for ``grippers`` x 5 openings x R rotations with cached kernels,
+    encoding one gripper's 5 kernels), as the bench times them."""
     torch.manual_seed(0)
     model = build_model(cfg).to(device).eval()
     scene = scene_of(cfg, 1, 0).to(device)
     grips = [gripper_of(cfg, 5, g).to(device) for g in range(grippers)]
     keys = [f"bench{g}" for g in range(grippers)]
-    kernels = median_time(lambda: model.gripper_kernels(grips[0]), repeats, device)
-    per_scene = median_time(lambda: model.predict(scene, grips, keys=keys), repeats, device)
-    return per_scene, kernels
+    return (lambda: model.predict(scene, grips, keys=keys)), (lambda: model.gripper_kernels(grips[0]))
+
+
+def bench_infer(cfg, repeats: int, device: torch.device, grippers: int = 1) -> tuple[float, float]:
+    """(seconds per scene for ``grippers`` x 5 openings x R rotations, seconds to encode 5 kernels)."""
+    infer, kernels = infer_fns(cfg, device, grippers)
+    kernel_s = median_time(kernels, repeats, device)
+    return median_time(infer, repeats, device), kernel_s
+
+
+def count_gflop(fn) -> float:
+    """GFLOP of the convolutions one call of ``fn`` runs (torch's FlopCounterMode; 1 multiply-add
+    = 2 FLOP; FFTs, resampling and element-wise work are not counted). Counted on the plain
+    convolution path: the fused oneDNN calls of CPU inference run the same convolutions but are
+    invisible to the counter."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    import common.network as network
+
+    fused, network._FUSED = network._FUSED, None
+    try:
+        with FlopCounterMode(display=False) as counter:
+            fn()
+    finally:
+        network._FUSED = fused
+    return counter.get_total_flops() / 1e9
 
 
 def bench_learner(cfg, repeats: int, device: torch.device) -> float:
@@ -149,6 +177,13 @@ def cuda_cpu_diff(cfg, device: torch.device) -> float:
 
 
 def bench_train(cfg, repeats: int, device: torch.device) -> float:
+    """Seconds per batch-B training step (:func:`train_step_fn`)."""
+    return median_time(train_step_fn(cfg, device), repeats, device)
+
+
+def train_step_fn(cfg, device: torch.device):
+    """One training step as the bench times it: forward of each sample's executed rotation,
+    loss, backward, Adam; random scenes and actions, alternating labels."""
     torch.manual_seed(0)
     model = build_model(cfg).to(device).train()
     opt = torch.optim.Adam(model.parameters(), lr=cfg.learner.lr)
@@ -166,7 +201,7 @@ def bench_train(cfg, repeats: int, device: torch.device) -> float:
         loss.backward()
         opt.step()
 
-    return median_time(step, repeats, device)
+    return step
 
 
 def rotation_consistency(cfg, seeds: int = 2) -> dict:
@@ -374,6 +409,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-paper", action="store_true", help="skip every paper-scale measurement")
     ap.add_argument("--skip-paper-train", action="store_true", help="skip the paper-scale training step")
     ap.add_argument("--skip-kernel", action="store_true", help="skip the kernel-rotation option")
+    ap.add_argument("--flops", action="store_true",
+                    help="also count the convolution GFLOP of each timed figure and the GFLOP/s it ran at")
     ap.add_argument("--process-env", action="store_true",
                     help="run with the launcher's allocator settings (common/runtime.py), applied before torch loads")
     ap.add_argument("--accuracy-steps", type=int, default=0,
@@ -433,6 +470,16 @@ def main(argv: list[str] | None = None) -> int:
             out["train_step_paper_frozen_stem_s"] = bench_train(config("paper", "model.train_stem=false"), n, device)
     if device.type == "cuda":
         out["cuda_peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+    if args.flops:
+        counted = {"infer_default": infer_fns(default, device)[0], "train_step_default": train_step_fn(default, device)}
+        if not args.skip_paper:
+            counted["infer_paper"] = infer_fns(paper, device)[0]
+            if not args.skip_paper_train:
+                counted["train_step_paper"] = train_step_fn(paper, device)
+        for name, fn in counted.items():
+            fn()  # fills the gripper kernel cache, as before the timed runs
+            out[f"{name}_gflop"] = count_gflop(fn)
+            out[f"{name}_gflop_per_s"] = out[f"{name}_gflop"] / out[f"{name}_s"]
     if not args.skip_kernel:
         out["kernel_rotation_consistency"] = rotation_consistency(None)
     if args.accuracy_steps > 0:
