@@ -169,7 +169,9 @@ def inference_config(cfg: Config, scene_chunk: int = 0, decoder_chunk: int = 0) 
     for the machine it was trained on, are not the ones to run it with elsewhere.
     """
     if scene_chunk < 0 or decoder_chunk < 0:
-        raise ValueError(f"inference_config: scene_chunk and decoder_chunk must be >= 0, got {scene_chunk}, {decoder_chunk}")
+        raise ValueError(
+            f"inference_config: scene_chunk and decoder_chunk must be >= 0, got {scene_chunk}, {decoder_chunk}"
+        )
     batching = dataclasses.replace(cfg.model, scene_chunk=int(scene_chunk), decoder_chunk=int(decoder_chunk))
     return dataclasses.replace(cfg, model=batching)
 

@@ -205,7 +205,9 @@ def numbered_trial(cfg: Config, i: int, rng: np.random.Generator | None = None, 
     return synthetic_trial(rng, cfg.scene_grid, cfg.gripper_grid, n_objects, n_obstacles, **kw)
 
 
-def random_actions(batch: int, grid_xy: tuple[int, int], rotations: int, margin: int, generator: torch.Generator) -> torch.Tensor:
+def random_actions(
+    batch: int, grid_xy: tuple[int, int], rotations: int, margin: int, generator: torch.Generator
+) -> torch.Tensor:
     """(batch, 4) int64 actions (i, j, k, s): cells (i, j) uniform over the scene grid
     ``grid_xy`` = (X, Y) at least ``margin`` cells from its edge, rotation k uniform in
     [0, rotations), opening index s = 0; drawn from ``generator`` in the order i, j, k."""
