@@ -3,11 +3,11 @@
 On CPUs without AVX-512, oneDNN (torch's CPU convolution library) computes the weight gradient
 of a strided 3-D convolution with its generic im2col + GEMM fallback, and that of a wide 2-D
 3x3 convolution several times slower than the forward pass (docs/RESULTS.md, "Where the time
-goes on two cores"). Here the output is cut into slabs of a few rows, each slab's input
-patches are gathered into a buffer that stays in cache, and the gradient accumulates one matrix
-product per slab. The input gradient still comes from the library. Same sums as the library up
-to float rounding (tests/test_network.py); tests/bench/bench_model.py times the training step
-both ways in the same run.
+goes on two cores"). Here the output is cut
+into slabs of a few depth rows, each slab's input patches are gathered into a buffer that stays
+in cache, and the gradient accumulates one matrix product per slab. The input gradient still
+comes from the library. Same sums as the library up to float rounding (tests/test_network.py);
+tests/bench/bench_model.py times the training step both ways in the same run.
 """
 
 from __future__ import annotations
@@ -22,11 +22,10 @@ SLAB_BYTES = 4 << 20
 def slab_pays(dim: int, cin: int, kernel: int, stride: int) -> bool:
     """Whether the slab weight gradient beats the library's for this convolution on the CPU.
 
-    Measured on the 2-core AVX2 machine (one thread, CPU seconds of the library's kernel over
-    this module's, the encoders' and decoders' layer shapes at both scales, batch 1-8): 3-D
-    stride 2 with 16 or 32 input channels 1.0-1.8x, 3-D stride 1 0.4-0.8x (the library is
-    fast there); 2-D 3x3 with 32 or 64 input channels 1.1-2.6x (the most at 192 x 192), with
-    16 input channels 0.6-1.0x.
+    Measured on the 2-core AVX2 machine, one thread, CPU seconds against the library's kernel:
+    3-D stride 2 with 16 or 32 input channels 1.3-1.8x faster, 3-D stride 1 slower (0.4-0.8x:
+    the library is fast there); 2-D 3x3 with 32 or 64 input channels 1.1-2.6x faster (the most
+    at 192 x 192), with 16 input channels 0.8-1.0x.
     """
     if dim == 3:
         return stride == 2 and cin >= 16
