@@ -64,7 +64,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from common.config import Config, GripperGridConfig, ModelConfig, SceneGridConfig
-from common.conv_grad import conv_slab_grad, slab_pays
+from common.conv_grad import SLAB_MIN_CHANNELS, conv3d_slab_grad
 
 SUCCESS = 1
 """Index of the success logit along the logits' channel axis (0 is failure)."""
@@ -114,15 +114,15 @@ class ConvBlock(nn.Module):
         relu: bool = True,
         slab_grad: bool = False,
     ):
-        """``slab_grad``: when training on the CPU, take the weight gradient from ``common.conv_grad``
-        instead of torch's kernel if ``slab_pays`` says so for this layer (the same gradient)."""
+        """``slab_grad``: when training on the CPU, take this 3-D convolution's weight gradient from
+        ``common.conv_grad`` instead of torch's kernel (same gradient, faster for strided layers)."""
         super().__init__()
         conv = nn.Conv3d if dim == 3 else nn.Conv2d
         self.conv = conv(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=not norm)
         self.norm = (nn.BatchNorm3d if dim == 3 else nn.BatchNorm2d)(cout) if norm else None
         self.relu = relu
         self._fn = F.conv3d if dim == 3 else F.conv2d
-        self.slab_grad = bool(slab_grad) and slab_pays(dim, cin, kernel, stride)
+        self.slab_grad = bool(slab_grad) and dim == 3
         self._fold_src: tuple = ()
         self._fold_versions: tuple = ()
         self._fold: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -175,7 +175,7 @@ class ConvBlock(nn.Module):
         else:
             c = self.conv
             if self.slab_grad and x.device.type == "cpu" and torch.is_grad_enabled() and c.weight.requires_grad:
-                y = conv_slab_grad(x, c.weight, c.bias, c.stride, c.padding)
+                y = conv3d_slab_grad(x, c.weight, c.bias, c.stride[0], c.padding[0])
             else:
                 y = c(x)
             if self.norm is not None:
@@ -188,10 +188,10 @@ class ConvBlock(nn.Module):
 class ResBlock2D(nn.Module):
     """Two 3x3 conv + batch norm layers with an identity shortcut, ReLU after the sum."""
 
-    def __init__(self, channels: int, slab_grad: bool = False):
+    def __init__(self, channels: int):
         super().__init__()
-        self.conv1 = ConvBlock(2, channels, channels, slab_grad=slab_grad)
-        self.conv2 = ConvBlock(2, channels, channels, slab_grad=slab_grad)
+        self.conv1 = ConvBlock(2, channels, channels)
+        self.conv2 = ConvBlock(2, channels, channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.conv2(self.conv1(x), residual=x)
@@ -215,8 +215,8 @@ class Encoder(nn.Module):
         where: str,
         slab_grad: bool = False,
     ):
-        """``slab_grad``: the layers where it pays take their CPU weight gradients from
-        ``common.conv_grad``."""
+        """``slab_grad``: the stride-2 3-D stages with at least ``SLAB_MIN_CHANNELS`` input channels
+        take their CPU weight gradients from ``common.conv_grad``."""
         super().__init__()
         if down >= len(widths):
             raise NetworkConfigError(
@@ -224,13 +224,15 @@ class Encoder(nn.Module):
             )
         layers, c = [], cin
         for n, w in enumerate(widths):
-            layers.append(ConvBlock(3, c, w, stride=2 if 0 < n <= down else 1, slab_grad=slab_grad))
+            stride = 2 if 0 < n <= down else 1
+            slab = slab_grad and stride == 2 and c >= SLAB_MIN_CHANNELS
+            layers.append(ConvBlock(3, c, w, stride=stride, slab_grad=slab))
             c = w
         self.conv3d = nn.Sequential(*layers)
         self.depth = depth
         self.fold = ConvBlock(2, c * depth, mid, kernel=1, norm=fold_act, relu=fold_act)
-        self.res = nn.Sequential(ResBlock2D(mid, slab_grad), ResBlock2D(mid, slab_grad))
-        self.out = ConvBlock(2, mid, cout, norm=False, slab_grad=slab_grad)
+        self.res = nn.Sequential(ResBlock2D(mid), ResBlock2D(mid))
+        self.out = ConvBlock(2, mid, cout, norm=False)
         self.conv3d.to(memory_format=torch.channels_last_3d)
 
     def forward(self, x: torch.Tensor, train_stem: bool = True) -> torch.Tensor:
@@ -389,9 +391,9 @@ class AdaGraspNet(nn.Module):
             raise NetworkConfigError(f"model.variant: expected one of {list(VARIANTS)}, got {self.variant!r}")
         if self.correlation not in ("fft", "grouped"):
             raise NetworkConfigError(f"model.correlation: expected fft or grouped, got {self.correlation!r}")
-        if model.weight_grad not in ("slab", "library"):
+        if model.conv3d_weight_grad not in ("slab", "library"):
             raise NetworkConfigError(
-                f"model.weight_grad: expected slab or library, got {model.weight_grad!r}"
+                f"model.conv3d_weight_grad: expected slab or library, got {model.conv3d_weight_grad!r}"
             )
         if self.rotate_mode not in ("scene", "kernel"):
             raise NetworkConfigError(f"model.rotate: expected scene or kernel, got {self.rotate_mode!r}")
@@ -403,7 +405,7 @@ class AdaGraspNet(nn.Module):
             if n % ratio:
                 raise NetworkConfigError(f"scene_grid.{name}: {n} cells is not a multiple of {ratio}")
         self.feature_shape = (X // ratio, Y // ratio)
-        slab = model.weight_grad == "slab"
+        slab = model.conv3d_weight_grad == "slab"
         self.scene_encoder = Encoder(
             2, tuple(model.scene_widths), up, Z // ratio, 64, self.channels, True, "scene_grid", slab_grad=slab
         )
@@ -433,10 +435,10 @@ class AdaGraspNet(nn.Module):
         if dw < 2 or dw % 2:
             raise NetworkConfigError(f"model.decoder_width: expected an even number >= 2, got {model.decoder_width!r}")
         widths = [dw] + [dw] * max(0, up - 1) + ([dw // 2] if up > 0 else [])
-        self.dec_in = ConvBlock(2, self.channels, dw, norm=False, slab_grad=slab)
-        self.dec_res0 = ResBlock2D(dw, slab)
-        self.dec_up = nn.ModuleList(ConvBlock(2, widths[u], widths[u + 1], slab_grad=slab) for u in range(up))
-        self.dec_res = nn.ModuleList(ResBlock2D(widths[u + 1], slab) for u in range(up))
+        self.dec_in = ConvBlock(2, self.channels, dw, norm=False)
+        self.dec_res0 = ResBlock2D(dw)
+        self.dec_up = nn.ModuleList(ConvBlock(2, widths[u], widths[u + 1]) for u in range(up))
+        self.dec_res = nn.ModuleList(ResBlock2D(widths[u + 1]) for u in range(up))
         self.dec_out = nn.Conv2d(widths[-1], 2, kernel_size=1, bias=False)
 
         for m in self.modules():

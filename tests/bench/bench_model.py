@@ -21,8 +21,8 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
   within one cell of where the original map's argmax cell turns to;
 - ``train_step_default_library_wgrad_s`` / ``train_step_paper_library_wgrad_s``: the same step
-  with ``model.weight_grad=library`` (torch's kernels for every weight gradient, the
-  baseline of common/conv_grad.py), timed alternately with the
+  with ``model.conv3d_weight_grad=library`` (torch's kernel for the weight gradients of the
+  stride-2 3-D convolutions, the baseline of common/conv_grad.py), timed alternately with the
   default step in the same run, and ``wgrad_speedup_default`` / ``_paper``, the ratio of the
   two medians;
 - ``train_step_paper_frozen_stem_s``: the paper-scale step with ``model.train_stem=false``;
@@ -485,7 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         out["matmul_allow_tf32"] = torch.backends.cuda.matmul.allow_tf32
         out["cuda_cpu_max_abs_diff_default"] = cuda_cpu_diff(default, device)
     out["infer_default_s"], out["gripper_kernels_default_s"] = bench_infer(default, n, device)
-    out.update(bench_train_wgrad(default, config("default", "model.weight_grad=library"), "default", n, device))
+    out.update(bench_train_wgrad(default, config("default", "model.conv3d_weight_grad=library"), "default", n, device))
     out["learner_step_default_s"] = bench_learner(default, n, device)
     if not args.skip_kernel:
         out["infer_default_kernel_s"] = bench_infer(config("default", "model.rotate=kernel"), n, device)[0]
@@ -495,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.skip_kernel:
             out["infer_paper_kernel_s"] = bench_infer(config("paper", "model.rotate=kernel"), n, device)[0]
         if not args.skip_paper_train:
-            out.update(bench_train_wgrad(paper, config("paper", "model.weight_grad=library"), "paper", n, device))
+            out.update(bench_train_wgrad(paper, config("paper", "model.conv3d_weight_grad=library"), "paper", n, device))
             out["learner_step_paper_s"] = bench_learner(paper, n, device)
             out["train_step_paper_frozen_stem_s"] = bench_train(config("paper", "model.train_stem=false"), n, device)
     if device.type == "cuda":
