@@ -200,10 +200,6 @@ class ModelConfig:
     correlation: str = "fft"
     """How the cross-correlation is computed: fft (real FFTs) | grouped (one grouped convolution);
     the same sums, up to float rounding."""
-    conv3d_weight_grad: str = "slab"
-    """How CPU training computes the weight gradient of the encoders' stride-2 3-D convolutions:
-    slab (common/conv_grad.py: im2col over cache-sized slabs, one matrix product each) | library
-    (torch's kernel); the same gradient up to float rounding. GPUs always use the library."""
     train_stem: bool = True
     """Train the scene encoder's first conv block; false keeps it at its initialisation (a
     training speed option: its full-resolution backward pass is skipped; see common/network.py)."""
@@ -339,7 +335,6 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "sim.scene": ("single", "multi", "obstacle"),
     "model.variant": ("adagrasp", "init-only", "scene-only"),
     "model.rotate": ("scene", "kernel"),
-    "model.conv3d_weight_grad": ("slab", "library"),
     "model.correlation": ("fft", "grouped"),
     "learner.device": ("auto", "cpu", "cuda"),
     "actor.policy": ("adagrasp", "fix-gripper", "fix-config", "random", "heuristic"),

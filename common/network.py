@@ -64,7 +64,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from common.config import Config, GripperGridConfig, ModelConfig, SceneGridConfig
-from common.conv_grad import SLAB_MIN_CHANNELS, conv3d_slab_grad
 
 SUCCESS = 1
 """Index of the success logit along the logits' channel axis (0 is failure)."""
@@ -103,26 +102,13 @@ class ConvBlock(nn.Module):
     over the activations instead of two).
     """
 
-    def __init__(
-        self,
-        dim: int,
-        cin: int,
-        cout: int,
-        kernel: int = 3,
-        stride: int = 1,
-        norm: bool = True,
-        relu: bool = True,
-        slab_grad: bool = False,
-    ):
-        """``slab_grad``: when training on the CPU, take this 3-D convolution's weight gradient from
-        ``common.conv_grad`` instead of torch's kernel (same gradient, faster for strided layers)."""
+    def __init__(self, dim: int, cin: int, cout: int, kernel: int = 3, stride: int = 1, norm: bool = True, relu: bool = True):
         super().__init__()
         conv = nn.Conv3d if dim == 3 else nn.Conv2d
         self.conv = conv(cin, cout, kernel, stride=stride, padding=kernel // 2, bias=not norm)
         self.norm = (nn.BatchNorm3d if dim == 3 else nn.BatchNorm2d)(cout) if norm else None
         self.relu = relu
         self._fn = F.conv3d if dim == 3 else F.conv2d
-        self.slab_grad = bool(slab_grad) and dim == 3
         self._fold_src: tuple = ()
         self._fold_versions: tuple = ()
         self._fold: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -173,11 +159,7 @@ class ConvBlock(nn.Module):
             c = self.conv
             y = self._fn(x, w, b, c.stride, c.padding, c.dilation, c.groups)
         else:
-            c = self.conv
-            if self.slab_grad and x.device.type == "cpu" and torch.is_grad_enabled() and c.weight.requires_grad:
-                y = conv3d_slab_grad(x, c.weight, c.bias, c.stride[0], c.padding[0])
-            else:
-                y = c(x)
+            y = self.conv(x)
             if self.norm is not None:
                 y = self.norm(y)
         if residual is not None:
@@ -204,19 +186,8 @@ class Encoder(nn.Module):
     """
 
     def __init__(
-        self,
-        cin: int,
-        widths: tuple[int, ...],
-        down: int,
-        depth: int,
-        mid: int,
-        cout: int,
-        fold_act: bool,
-        where: str,
-        slab_grad: bool = False,
+        self, cin: int, widths: tuple[int, ...], down: int, depth: int, mid: int, cout: int, fold_act: bool, where: str
     ):
-        """``slab_grad``: the stride-2 3-D stages with at least ``SLAB_MIN_CHANNELS`` input channels
-        take their CPU weight gradients from ``common.conv_grad``."""
         super().__init__()
         if down >= len(widths):
             raise NetworkConfigError(
@@ -224,9 +195,7 @@ class Encoder(nn.Module):
             )
         layers, c = [], cin
         for n, w in enumerate(widths):
-            stride = 2 if 0 < n <= down else 1
-            slab = slab_grad and stride == 2 and c >= SLAB_MIN_CHANNELS
-            layers.append(ConvBlock(3, c, w, stride=stride, slab_grad=slab))
+            layers.append(ConvBlock(3, c, w, stride=2 if 0 < n <= down else 1))
             c = w
         self.conv3d = nn.Sequential(*layers)
         self.depth = depth
@@ -391,10 +360,6 @@ class AdaGraspNet(nn.Module):
             raise NetworkConfigError(f"model.variant: expected one of {list(VARIANTS)}, got {self.variant!r}")
         if self.correlation not in ("fft", "grouped"):
             raise NetworkConfigError(f"model.correlation: expected fft or grouped, got {self.correlation!r}")
-        if model.conv3d_weight_grad not in ("slab", "library"):
-            raise NetworkConfigError(
-                f"model.conv3d_weight_grad: expected slab or library, got {model.conv3d_weight_grad!r}"
-            )
         if self.rotate_mode not in ("scene", "kernel"):
             raise NetworkConfigError(f"model.rotate: expected scene or kernel, got {self.rotate_mode!r}")
 
@@ -405,10 +370,7 @@ class AdaGraspNet(nn.Module):
             if n % ratio:
                 raise NetworkConfigError(f"scene_grid.{name}: {n} cells is not a multiple of {ratio}")
         self.feature_shape = (X // ratio, Y // ratio)
-        slab = model.conv3d_weight_grad == "slab"
-        self.scene_encoder = Encoder(
-            2, tuple(model.scene_widths), up, Z // ratio, 64, self.channels, True, "scene_grid", slab_grad=slab
-        )
+        self.scene_encoder = Encoder(2, tuple(model.scene_widths), up, Z // ratio, 64, self.channels, True, "scene_grid")
 
         self.kernel_size = 0
         if self.variant != "scene-only":
@@ -420,9 +382,7 @@ class AdaGraspNet(nn.Module):
             if gx % g or gz % g:
                 raise NetworkConfigError(f"gripper_grid.shape: {self.gripper_shape} is not a multiple of {g}")
             cin = 2 if self.variant == "adagrasp" else 1
-            self.gripper_encoder = Encoder(
-                cin, tuple(model.gripper_widths), gdown, gz // g, 64, self.channels, False, "gripper_grid", slab_grad=slab
-            )
+            self.gripper_encoder = Encoder(cin, tuple(model.gripper_widths), gdown, gz // g, 64, self.channels, False, "gripper_grid")
             self.kernel_size = gx // g
 
         # An even kernel puts the correlation on cell corners, (Fx + 1, Fy + 1) points; an odd one

@@ -9,7 +9,6 @@ import pytest
 import torch
 
 from common.config import load_config
-from common.conv_grad import conv3d_weight_grad
 from common.network import (
     SUCCESS,
     NetworkConfigError,
@@ -359,46 +358,6 @@ def test_fused_inference_kernels_match_the_plain_path(monkeypatch):
     model.train()
     logits = model.forward_train(scene, gripper[:1], torch.tensor([1]))
     assert logits.requires_grad
-
-
-@pytest.mark.parametrize(
-    "cin, cout, size, stride, slab_bytes",
-    [
-        (16, 8, (9, 7, 6), 2, 1),  # odd sizes, one depth row per slab
-        (16, 8, (10, 8, 6), 2, 3 * 4 * 3 * 27 * 16 * 4),  # three rows per slab, a short last slab
-        (4, 6, (7, 6, 5), 1, 1 << 20),  # stride 1, the whole output in one slab
-    ],
-)
-def test_slab_weight_gradient_equals_the_library(cin, cout, size, stride, slab_bytes):
-    gen = torch.Generator().manual_seed(cin + stride)
-    x = torch.randn((2, cin, *size), generator=gen).contiguous(memory_format=torch.channels_last_3d)
-    weight = torch.randn((cout, cin, 3, 3, 3), generator=gen, requires_grad=True)
-    y = torch.nn.functional.conv3d(x, weight, None, stride, 1)
-    grad_out = torch.randn(y.shape, generator=gen)
-    y.backward(grad_out)
-    mine = conv3d_weight_grad(x, grad_out, 3, stride, 1, slab_bytes=slab_bytes)
-    assert mine.shape == weight.shape
-    assert float((mine - weight.grad).abs().max()) <= 1e-4 * float(weight.grad.abs().max())
-    with pytest.raises(ValueError, match="grad_out spatial shape"):
-        conv3d_weight_grad(x, grad_out[:, :, 1:], 3, stride, 1)
-
-
-def test_slab_and_library_weight_gradients_train_alike():
-    """The default-scale scene encoder's stride-2 16 -> 32 stage takes the slab gradient; the whole
-    model's gradients match the library's (and the flag reaches only that kind of layer)."""
-    grads = {}
-    for mode in ("slab", "library"):
-        cfg, model = small_model(f"model.conv3d_weight_grad={mode}")
-        flags = [m.slab_grad for m in model.scene_encoder.conv3d]
-        assert flags == ([False, True, False] if mode == "slab" else [False] * 3), flags
-        model.train()
-        scene = torch.cat([random_scene(cfg, 7), random_scene(cfg, 8)])
-        logits = model.forward_train(scene, random_gripper(cfg, 2, 9), torch.tensor([3, 11]))
-        model.loss(logits, torch.tensor([[4, 5, 3, 0], [9, 2, 11, 1]]), torch.tensor([1, 0])).backward()
-        grads[mode] = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
-    assert grads["slab"].keys() == grads["library"].keys()
-    for name, g in grads["library"].items():
-        assert float((grads["slab"][name] - g).abs().max()) <= 1e-4 * float(g.abs().max()) + 1e-7, name
 
 
 def test_frozen_stem_trains_everything_but_the_first_block():

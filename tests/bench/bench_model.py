@@ -20,11 +20,6 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   seeded model (see :func:`rotation_consistency`), per mode: mean |p(rot90 scene, k + R/4) -
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
   within one cell of where the original map's argmax cell turns to;
-- ``train_step_default_library_wgrad_s`` / ``train_step_paper_library_wgrad_s``: the same step
-  with ``model.conv3d_weight_grad=library`` (torch's kernel for the weight gradients of the
-  stride-2 3-D convolutions, the baseline of common/conv_grad.py), timed alternately with the
-  default step in the same run, and ``wgrad_speedup_default`` / ``_paper``, the ratio of the
-  two medians;
 - ``train_step_paper_frozen_stem_s``: the paper-scale step with ``model.train_stem=false``;
 - ``speed_option_accuracy`` (with ``--accuracy-steps N``): the paper's model and both speed
   options trained N steps on the same synthetic grasping task (:func:`synth_accuracy`) and
@@ -106,33 +101,22 @@ def gripper_of(cfg, n: int, seed: int) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
-def timed_run(fn, device: torch.device) -> float:
-    """Wall seconds of one call of ``fn``; on CUDA the call ends with a synchronisation, so
-    queued kernels are inside the figure."""
-    t0 = time.perf_counter()
-    fn()
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    return time.perf_counter() - t0
-
-
 def median_time(fn, repeats: int, device: torch.device) -> float:
-    """Median of ``timed_run`` over ``repeats`` runs after one warm-up."""
-    timed_run(fn, device)
-    return statistics.median(timed_run(fn, device) for _ in range(repeats))
+    """Median wall seconds of ``fn`` over ``repeats`` runs after one warm-up; on CUDA each run
+    ends with a synchronisation, so queued kernels are inside the figure."""
 
+    def run():
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
 
-def median_times_alternating(fns: dict, repeats: int, device: torch.device) -> dict:
-    """``median_time`` of several functions whose runs alternate (one warm-up each, then
-    ``repeats`` rounds of one run of each), so that a slow or fast spell of a shared machine
-    falls on all of them alike."""
-    for fn in fns.values():
-        timed_run(fn, device)
-    times: dict = {name: [] for name in fns}
+    run()
+    times = []
     for _ in range(repeats):
-        for name, fn in fns.items():
-            times[name].append(timed_run(fn, device))
-    return {name: statistics.median(t) for name, t in times.items()}
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def infer_fns(cfg, device: torch.device, grippers: int = 1):
@@ -195,20 +179,6 @@ def cuda_cpu_diff(cfg, device: torch.device) -> float:
 def bench_train(cfg, repeats: int, device: torch.device) -> float:
     """Seconds per batch-B training step (:func:`train_step_fn`)."""
     return median_time(train_step_fn(cfg, device), repeats, device)
-
-
-def bench_train_wgrad(cfg, library_cfg, scale: str, repeats: int, device: torch.device) -> dict:
-    """The training step of ``cfg`` and of ``library_cfg`` (its twin with torch's weight-gradient
-    kernel), timed alternately: ``train_step_{scale}_s``, ``train_step_{scale}_library_wgrad_s``
-    and ``wgrad_speedup_{scale}`` (library / default)."""
-    t = median_times_alternating(
-        {"step": train_step_fn(cfg, device), "library": train_step_fn(library_cfg, device)}, repeats, device
-    )
-    return {
-        f"train_step_{scale}_s": t["step"],
-        f"train_step_{scale}_library_wgrad_s": t["library"],
-        f"wgrad_speedup_{scale}": t["library"] / t["step"],
-    }
 
 
 def train_step_fn(cfg, device: torch.device):
@@ -485,7 +455,7 @@ def main(argv: list[str] | None = None) -> int:
         out["matmul_allow_tf32"] = torch.backends.cuda.matmul.allow_tf32
         out["cuda_cpu_max_abs_diff_default"] = cuda_cpu_diff(default, device)
     out["infer_default_s"], out["gripper_kernels_default_s"] = bench_infer(default, n, device)
-    out.update(bench_train_wgrad(default, config("default", "model.conv3d_weight_grad=library"), "default", n, device))
+    out["train_step_default_s"] = bench_train(default, n, device)
     out["learner_step_default_s"] = bench_learner(default, n, device)
     if not args.skip_kernel:
         out["infer_default_kernel_s"] = bench_infer(config("default", "model.rotate=kernel"), n, device)[0]
@@ -495,7 +465,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.skip_kernel:
             out["infer_paper_kernel_s"] = bench_infer(config("paper", "model.rotate=kernel"), n, device)[0]
         if not args.skip_paper_train:
-            out.update(bench_train_wgrad(paper, config("paper", "model.conv3d_weight_grad=library"), "paper", n, device))
+            out["train_step_paper_s"] = bench_train(paper, n, device)
             out["learner_step_paper_s"] = bench_learner(paper, n, device)
             out["train_step_paper_frozen_stem_s"] = bench_train(config("paper", "model.train_stem=false"), n, device)
     if device.type == "cuda":
