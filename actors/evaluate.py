@@ -14,7 +14,9 @@ Protocol (docs/EVALUATION.md has the whole text):
 - Episode e uses the scene seed ``actors.rollout.episode_seed(S, e)`` =
   ``SeedSequence([S, e]).generate_state(1)[0]`` for root seed S (``--seed``), whatever the policy,
   gripper, scene kind, object set or number of actors; its policy generator is
-  ``numpy.random.default_rng([S, e, 1])``. Every (gripper, episode) runs in a fresh
+  ``numpy.random.default_rng([S, e, 1, crc32(gripper name)])`` for a per-gripper policy and
+  ``numpy.random.default_rng([S, e, 1])`` for ``adagrasp`` (:func:`policy_seed`), so every
+  gripper draws its own random openings, actions and blobs. Every (gripper, episode) runs in a fresh
   :class:`actors.simulation.Simulation`, so its outcome does not depend on what ran before it
   in the same process: results are identical for any ``--actors``.
 - One attempt = one grasp; it succeeds when exactly one target ends above ``sim.lift_height``
@@ -50,6 +52,7 @@ import os
 import shlex
 import sys
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,7 +88,7 @@ SCRIPTED = ("random", "heuristic")
 POLICIES = (*LEARNED, *SCRIPTED)
 """Every ``--policy``, in the row order of the paper's table (reference rows last)."""
 POLICY_STREAM = 1
-"""Third entropy word of the policy generator ``default_rng([seed, episode, POLICY_STREAM])``."""
+"""Third entropy word of the policy generator (:func:`policy_seed`)."""
 CELL_ORDER = ("O_tr/G_tr", "O_tr/G_te", "O_te/G_tr", "O_te/G_te")
 """Object x gripper cells of the paper's table, in its column order."""
 
@@ -94,9 +97,18 @@ class EvaluationError(ValueError):
     """Bad evaluation input (policy, checkpoint, grippers, result file); one line naming the field."""
 
 
-def policy_seed(seed: int, episode: int) -> list[int]:
-    """Entropy of the policy generator of episode ``episode`` (shared by every gripper and policy)."""
-    return [int(seed), int(episode), POLICY_STREAM]
+def policy_seed(seed: int, episode: int, gripper: str | None = None) -> list[int]:
+    """Entropy of the policy generator of episode ``episode`` run by ``gripper`` (None: the
+    ``adagrasp`` policy, which chooses among all grippers).
+
+    The same for every policy, so rows of a table that draw alike draw the same numbers; one
+    stream per gripper name (its CRC-32, independent of the order of ``--grippers``), so the
+    random draws of ``fix-config``, ``random`` and ``heuristic`` are independent across the
+    grippers of a cell: with a stream shared by all grippers, a cell of 32 grippers x 4 episodes
+    would try only the openings of 4 episodes' draws.
+    """
+    words = [int(seed), int(episode), POLICY_STREAM]
+    return words if gripper is None else [*words, zlib.crc32(gripper.encode())]
 
 
 # --------------------------------------------------------------------------------------
@@ -284,7 +296,8 @@ class EvalWorker:
         t0 = time.perf_counter()
         plan = self.plan
         seed = episode_seed(plan.seed, unit.episode)
-        rng = np.random.default_rng(policy_seed(plan.seed, unit.episode))
+        name = None if unit.gripper is None else plan.gripper_names[unit.gripper]
+        rng = np.random.default_rng(policy_seed(plan.seed, unit.episode, name))
         policy = self.policy(unit.gripper)
         attempts = []
         with Simulation(plan.cfg, seed=seed) as sim:
