@@ -268,6 +268,10 @@ class LearnerConfig:
     the learner (the actor side of the rate limiter); 0 = actors never wait."""
     publish_every: int = 20
     """Learner steps between weight publications."""
+    ema_decay: float = 0.0
+    """Decay of an exponential moving average of the weights, updated every learner step; when
+    above 0 the average is what actors act with and what checkpoints carry as the model (the
+    trained weights are kept in latest.pt for resuming); 0 = off."""
     checkpoint_minutes: float = 5.0
     """Minutes between checkpoints (one more is written at exit)."""
     keep_snapshots: bool = True
@@ -368,6 +372,7 @@ _RANGES: dict[str, tuple[float, float]] = {
     "learner.samples_per_insert": (0.0, 1e6),
     "learner.insert_lead": (0.0, 1e9),
     "learner.publish_every": (1, 10**9),
+    "learner.ema_decay": (0.0, 0.9999),
     "actor.torch_threads": (1, 256),
     "grippers.multi_finger_fraction": (0.0, 1.0),
     "sim.lift_height": (0.0, 10.0),

@@ -3,7 +3,9 @@
 Writes ``DEST/NAME/`` (``--dest``, default the package's ``assets/models``):
 
 - ``checkpoint.pt``: the weights, variant, resolved config, step, weights version, epsilon and the
-  learner's own keys (replay position), without the optimiser state (which is twice the weights);
+  learner's own keys (replay position), without what only resuming needs: the optimiser state
+  (twice the weights) and, for a run with ``learner.ema_decay`` > 0, the trained weights behind
+  the shipped average;
 - ``config.yaml``: the resolved config;
 - ``progress.jsonl``, ``summary.json``, ``history.json``: the run's training log, copied when
   present.
@@ -42,8 +44,11 @@ def export_model(run: str | Path, name: str, checkpoint: str | Path | None = Non
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    extra = dict(ckpt.extra)
+    if isinstance(extra.get("learner"), dict):
+        extra["learner"] = {k: v for k, v in extra["learner"].items() if k != "trained_model"}
     save_checkpoint(tmp / "checkpoint.pt", model, ckpt.cfg, step=ckpt.step, version=ckpt.version,
-                    epsilon=ckpt.epsilon, optimizer=None, extra=ckpt.extra)
+                    epsilon=ckpt.epsilon, optimizer=None, extra=extra)
     save_config(ckpt.cfg, tmp / "config.yaml")
     for log in RUN_LOGS:
         if (run / log).is_file():

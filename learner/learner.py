@@ -14,6 +14,7 @@ actor. Call loop::
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 
@@ -74,6 +75,31 @@ class Learner:
         self.limiter = SamplesPerInsert.from_config(cfg.learner)
         self.stats = TrainStats()
         self.steps_since_publish = 0
+        self.average = copy.deepcopy(self.model).eval().requires_grad_(False) if cfg.learner.ema_decay > 0 else None
+        """Exponential moving average of the weights (``learner.ema_decay`` > 0), else None."""
+        self.average_updates = 0
+        """Steps folded into :attr:`average` since it was (re)started."""
+
+    @property
+    def policy_model(self):
+        """The weights actors act with and checkpoints carry: the average when one is kept."""
+        return self.model if self.average is None else self.average
+
+    def _update_average(self) -> None:
+        """Fold the current weights into the average. The decay ramps up as (1 + n) / (10 + n)
+        towards ``learner.ema_decay`` so that the first steps do not keep the initial weights."""
+        if self.average is None:
+            return
+        self.average_updates += 1
+        n = self.average_updates
+        decay = min(self.cfg.learner.ema_decay, (1 + n) / (10 + n))
+        with torch.no_grad():
+            for avg, cur in zip(self.average.state_dict().values(), self.model.state_dict().values()):
+                if avg.dtype.is_floating_point:
+                    avg.lerp_(cur, 1.0 - decay)
+                else:
+                    avg.copy_(cur)
+        self.average.clear_cache()
 
     def train(self, steps: int, max_seconds: float | None = None) -> TrainStats:
         """Run ``steps`` optimiser steps, or fewer (at least one) once ``max_seconds`` have passed;
@@ -102,6 +128,7 @@ class Learner:
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
+            self._update_average()
             with torch.no_grad():
                 b = torch.arange(logits.shape[0], device=logits.device)
                 prob = torch.softmax(logits[b, :, action[:, 0], action[:, 1]], dim=1)[:, 1].cpu()
@@ -123,16 +150,19 @@ class Learner:
         return self.stats
 
     def publish(self) -> tuple[int, dict]:
-        """A new weights version: (version, CPU state dict)."""
+        """A new weights version of :attr:`policy_model`: (version, CPU state dict)."""
         self.stats.version += 1
         self.steps_since_publish = 0
-        state = {k: v.detach().to("cpu", copy=True) for k, v in self.model.state_dict().items()}
+        state = {k: v.detach().to("cpu", copy=True) for k, v in self.policy_model.state_dict().items()}
         return self.stats.version, state
 
     def state_dict(self) -> dict:
-        """Everything needed to resume the learner (model, optimiser, counters, generator)."""
+        """Everything needed to resume the learner (trained weights, their average or None,
+        optimiser, counters, generator)."""
         return {
             "model": self.model.state_dict(),
+            "average": None if self.average is None else self.average.state_dict(),
+            "average_updates": self.average_updates,
             "optimizer": self.optimizer.state_dict(),
             "steps": self.stats.steps,
             "samples": self.stats.samples,
@@ -142,8 +172,13 @@ class Learner:
         }
 
     def load_state_dict(self, state: dict) -> None:
-        """Inverse of :meth:`state_dict`."""
+        """Inverse of :meth:`state_dict`. Without a stored average (a run resumed with averaging
+        newly switched on) the average restarts from the loaded weights."""
         self.model.load_state_dict(state["model"])
+        if self.average is not None:
+            stored = state.get("average")
+            self.average.load_state_dict(state["model"] if stored is None else stored)
+            self.average_updates = int(state.get("average_updates", 0)) if stored is not None else 0
         self.optimizer.load_state_dict(state["optimizer"])
         self.stats.steps = int(state["steps"])
         self.stats.samples = int(state["samples"])

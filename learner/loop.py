@@ -78,9 +78,13 @@ class LearnerProcess:
         self.resumed_from = None
         if ckpt.is_file():
             c = read_checkpoint(ckpt)
-            self.learner.load_state_dict(
-                {"model": c.model_state, "optimizer": c.optimizer, "steps": c.step, "version": c.version, **c.extra["learner"]}
-            )
+            ls = dict(c.extra["learner"])
+            trained = ls.pop("trained_model", None)
+            averaged = trained is not None
+            self.learner.load_state_dict({
+                "model": trained if averaged else c.model_state, "average": c.model_state if averaged else None,
+                "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
+            })
             self.resumed_from = c.step
 
     def inserted(self) -> int:
@@ -133,35 +137,40 @@ class LearnerProcess:
         optimiser and learner state."""
         ls = self.learner.state_dict()
         replay = {"inserted": int(inserted), "shards": self.cfg.replay.shards}
+        learner_state = {"samples": ls["samples"], "history": ls["history"], "generator": ls["generator"]}
+        if ls["average"] is not None:
+            # The file's model is the average (what planners and evaluations load); resuming
+            # continues from the trained weights.
+            learner_state["trained_model"] = {k: v.detach().to("cpu", copy=True) for k, v in ls["model"].items()}
+            learner_state["average_updates"] = ls["average_updates"]
+        policy = self.learner.policy_model
         path = save_checkpoint(
-            checkpoint_path(self.run_dir), self.learner.model, self.cfg,
+            checkpoint_path(self.run_dir), policy, self.cfg,
             step=ls["steps"], version=ls["version"], epsilon=epsilon, optimizer=ls["optimizer"],
-            extra={
-                "learner": {"samples": ls["samples"], "history": ls["history"], "generator": ls["generator"]},
-                "replay": replay,
-            },
+            extra={"learner": learner_state, "replay": replay},
         )
         if snapshot and self.cfg.learner.keep_snapshots:
             save_checkpoint(
-                path.parent / f"step-{ls['steps']:07d}.pt", self.learner.model, self.cfg,
+                path.parent / f"step-{ls['steps']:07d}.pt", policy, self.cfg,
                 step=ls["steps"], version=ls["version"], epsilon=epsilon, extra={"replay": replay},
             )
         return str(path)
 
     def score_map_image(self) -> tuple[int, np.ndarray] | None:
-        """(learner step, (H, W, 3) uint8 image): the current weights' score maps (3 of the R
+        """(learner step, (H, W, 3) uint8 image): the policy weights' score maps (3 of the R
         rotations, best marked) of one replayed trial's scene and gripper at its executed opening;
         None while the replay holds no trial."""
         try:
             batch = self.replay.sample(2)
         except ReplayEmptyError:
             return None
-        model = self.learner.model
+        model = self.learner.policy_model
+        was_training = model.training
         model.eval()
         try:
             probs = model.predict(batch.scene[:1].to(model.device), [batch.gripper[:1].to(model.device)])
         finally:
-            model.train()
+            model.train(was_training)
         grid = self.cfg.scene_grid
         heightmap = heightmap_from_tsdf(batch.scene[0, 0].numpy(), grid)
         mask = action_region(self.cfg)

@@ -125,3 +125,48 @@ def test_checkpoint_snapshot_and_score_map_image(filled_replay, tmp_path):
     assert step == 1 and image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
     assert image.std() > 0, "a drawn figure, not a blank image"
     assert proc.learner.model.training, "the learner's model goes back to training mode"
+
+
+def test_weight_average_is_published_and_follows_the_trained_weights(filled_replay):
+    cfg, client = filled_replay
+    cfg.learner.ema_decay = 0.5
+    torch.manual_seed(0)
+    learner = Learner(cfg, client, seed=0)
+    expected = {k: v.clone() for k, v in learner.model.state_dict().items()}
+    for n in (1, 2, 3):
+        learner.train(1)
+        decay = min(0.5, (1 + n) / (10 + n))
+        for k, v in learner.model.state_dict().items():
+            expected[k] = decay * expected[k] + (1 - decay) * v if v.dtype.is_floating_point else v.clone()
+    average = learner.average.state_dict()
+    for k, v in expected.items():
+        torch.testing.assert_close(average[k], v, rtol=1e-6, atol=1e-7)
+    trained = learner.model.state_dict()
+    assert any(not torch.equal(average[k], trained[k]) for k in trained if trained[k].dtype.is_floating_point)
+    _, published = learner.publish()
+    assert all(torch.equal(published[k], average[k]) for k in average), "actors act with the average"
+    assert learner.model.training and not learner.average.training
+
+
+def test_weight_average_survives_checkpoint_resume_and_export(filled_replay, tmp_path):
+    from common.checkpoint import read_checkpoint
+    from learner.export import export_model
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    cfg.learner.ema_decay = 0.9
+    torch.manual_seed(0)
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    proc.learner.train(2)
+    proc.checkpoint(epsilon=0.5, inserted=12, snapshot=True)
+    latest = read_checkpoint(checkpoint_path(run))
+    average = proc.learner.average.state_dict()
+    assert all(torch.equal(latest.model_state[k], average[k]) for k in average), "the file's model is the average"
+    resumed = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    for a, b in ((proc.learner.model, resumed.learner.model), (proc.learner.average, resumed.learner.average)):
+        assert all(torch.equal(v, b.state_dict()[k]) for k, v in a.state_dict().items())
+    assert resumed.learner.average_updates == proc.learner.average_updates == 2
+    shipped = read_checkpoint(export_model(run, "avg", dest=tmp_path / "models") / "checkpoint.pt")
+    assert "trained_model" not in shipped.extra["learner"] and shipped.optimizer is None
+    assert all(torch.equal(shipped.model_state[k], average[k]) for k in average)
