@@ -27,6 +27,15 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
 - ``*_gflop`` and ``*_gflop_per_s`` (with ``--flops``): convolution GFLOP per call of the
   inference and training-step figures (:func:`count_gflop`) and the rate the timed median
   implies, to compare with what the machine can do;
+- ``reference`` (with ``--reference``): the public AdaGrasp code's compute schedule on the same
+  layers and weights (tests/bench/reference.py: per opening the gripper encoded again, per
+  rotation the scene turned by ``grid_sample`` and encoded again, each layer on its own in the
+  contiguous layout) against this project's path, timed alternately in one process (the order
+  swaps every round, since the second place of a pair runs a few per cent faster here): per
+  figure ``ours_s``, ``reference_s`` and ``speedup`` = reference / ours, for inference
+  (1 gripper x 5 openings x R rotations, ``infer_default`` / ``infer_paper``) and the batch-8
+  training step (``train_step_default`` / ``train_step_paper``); ``max_abs_diff_default``, the
+  largest difference of the two paths' probabilities for the timed default-scale scene;
 - ``threads``: torch intra-op threads; ``device`` (``--device``; on CUDA every timed run ends
   with a device synchronisation, and ``gpu``, ``torch``, the TF32 settings, the peak allocated
   memory ``cuda_peak_gib`` and ``cuda_cpu_max_abs_diff_default``, the largest difference between
@@ -44,6 +53,7 @@ Usage::
     python tests/bench/bench_model.py --repeats 5 --threads 2 --process-env --skip-paper-train
     python tests/bench/bench_model.py --device cuda --repeats 10 --set model.scene_chunk=1
     python tests/bench/bench_model.py --repeats 3 --threads 2 --process-env --skip-kernel --flops
+    python tests/bench/bench_model.py --repeats 3 --threads 2 --process-env --skip-kernel --reference
 """
 
 from __future__ import annotations
@@ -70,6 +80,7 @@ from common.config import load_config  # noqa: E402
 from common.network import build_model, count_parameters  # noqa: E402
 from learner.learner import Learner  # noqa: E402
 from replay.synthetic import FixedBatchReplay, random_actions  # noqa: E402
+from reference import reference_copy, reference_predict, reference_train_step_fn  # noqa: E402
 
 
 def scene_of(cfg, batch: int, seed: int) -> torch.Tensor:
@@ -117,6 +128,62 @@ def median_time(fn, repeats: int, device: torch.device) -> float:
         run()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def paired_medians(a, b, repeats: int, device: torch.device) -> tuple[float, float]:
+    """Median wall seconds of ``a`` and of ``b``, timed alternately after one warm-up each; the
+    order swaps every round (a b, b a, ...), so neither gains from always running second."""
+
+    def timed(fn) -> float:
+        t0 = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        return time.perf_counter() - t0
+
+    timed(a)
+    timed(b)
+    ta, tb = [], []
+    for r in range(repeats):
+        if r % 2 == 0:
+            ta.append(timed(a))
+            tb.append(timed(b))
+        else:
+            tb.append(timed(b))
+            ta.append(timed(a))
+    return statistics.median(ta), statistics.median(tb)
+
+
+def bench_reference(cfg, repeats: int, device: torch.device, train: bool = True, diff: bool = False) -> dict:
+    """This project's inference and training step against the public code's schedule
+    (tests/bench/reference.py) on the same weights, scene and batch: ``{figure: {ours_s,
+    reference_s, speedup}}``, plus ``max_abs_diff`` of the two inference results if ``diff``."""
+    torch.manual_seed(0)
+    model = build_model(cfg).to(device).eval()
+    ref = reference_copy(model).eval()
+    scene = scene_of(cfg, 1, 0).to(device)
+    grip = gripper_of(cfg, 5, 0).to(device)
+    ours = lambda: model.predict(scene, [grip], keys=["bench"])  # noqa: E731 (kernels cached, as actors run it)
+    theirs = lambda: reference_predict(ref, scene, grip)  # noqa: E731
+    out = {}
+    if diff:
+        out["max_abs_diff"] = float((ours()[0] - theirs()).abs().max())
+    a, b = paired_medians(ours, theirs, repeats, device)
+    out["infer"] = {"ours_s": a, "reference_s": b, "speedup": b / a}
+    if train:
+        torch.manual_seed(0)
+        ref_step = reference_train_step_fn(reference_copy(build_model(cfg).to(device)).train(), cfg.learner.lr)
+        B = cfg.learner.batch_size
+        scenes, grips = scene_of(cfg, B, 1).to(device), gripper_of(cfg, B, 1).to(device)
+        gen = torch.Generator().manual_seed(0)
+
+        def theirs_step():
+            action = random_actions(B, cfg.scene_grid.shape[:2], cfg.model.rotations, 0, gen).to(device)
+            ref_step(scenes, grips, action, (torch.arange(B, device=device) % 2))
+
+        a, b = paired_medians(train_step_fn(cfg, device), theirs_step, repeats, device)
+        out["train_step"] = {"ours_s": a, "reference_s": b, "speedup": b / a}
+    return out
 
 
 def infer_fns(cfg, device: torch.device, grippers: int = 1):
@@ -413,6 +480,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="also count the convolution GFLOP of each timed figure and the GFLOP/s it ran at")
     ap.add_argument("--process-env", action="store_true",
                     help="run with the launcher's allocator settings (common/runtime.py), applied before torch loads")
+    ap.add_argument("--reference", action="store_true",
+                    help="also time the public code's schedule (tests/bench/reference.py) against ours, alternately")
     ap.add_argument("--accuracy-steps", type=int, default=0,
                     help="train scene- and kernel-rotation models this many steps on the synthetic task (0: skip)")
     ap.add_argument("--accuracy-seeds", type=int, default=3, help="seeds of the synthetic accuracy comparison")
@@ -468,6 +537,13 @@ def main(argv: list[str] | None = None) -> int:
             out["train_step_paper_s"] = bench_train(paper, n, device)
             out["learner_step_paper_s"] = bench_learner(paper, n, device)
             out["train_step_paper_frozen_stem_s"] = bench_train(config("paper", "model.train_stem=false"), n, device)
+    if args.reference:
+        ref = bench_reference(default, n, device, diff=True)
+        out["reference"] = {"max_abs_diff_default": ref.pop("max_abs_diff")}
+        out["reference"].update({f"{k}_default": v for k, v in ref.items()})
+        if not args.skip_paper:
+            ref = bench_reference(paper, n, device, train=not args.skip_paper_train)
+            out["reference"].update({f"{k}_paper": v for k, v in ref.items()})
     if device.type == "cuda":
         out["cuda_peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
     if args.flops:
