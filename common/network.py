@@ -82,6 +82,13 @@ _GPU_DECODER_CHUNK = 256
 rotations of the scene in one batch)."""
 
 
+_WGRAD_MAX_ELEMENTS = 2**27
+"""Largest input (elements) of one weight-gradient call of a 3-D convolution on the CPU; larger
+batches are cut into chunks of whole samples. oneDNN 3.x falls back to im2col + GEMM for the
+weight gradient of a channels-last 3-D convolution whose input exceeds 2**28 elements: the
+paper-scale 16 -> 32 layer (8 x 16 x 192 x 192 x 64) took 0.85 s for the batch and 0.29 s in
+chunks of 4 samples on two AVX-512 cores (tests/bench/bench_model.py figures in docs/RESULTS.md)."""
+
 _FUSED = getattr(torch.ops.mkldnn, "_convolution_pointwise", None) if torch.backends.mkldnn.is_available() else None
 """oneDNN convolution with a fused bias, ReLU and residual add (CPU inference only), if this torch has it."""
 
@@ -93,6 +100,33 @@ class NetworkConfigError(ValueError):
 # --------------------------------------------------------------------------------------
 # Building blocks
 # --------------------------------------------------------------------------------------
+
+
+class _Conv3dChunkedWeightGrad(torch.autograd.Function):
+    """``F.conv3d(x, weight, None, stride, padding)`` whose weight gradient is summed over
+    chunks of ``chunk`` samples (see ``_WGRAD_MAX_ELEMENTS``); the input gradient is one call."""
+
+    @staticmethod
+    def forward(ctx, x, weight, stride, padding, chunk):
+        ctx.save_for_backward(x, weight)
+        ctx.conf = (list(stride), list(padding), int(chunk))
+        return F.conv3d(x, weight, None, stride, padding)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, weight = ctx.saved_tensors
+        stride, padding, chunk = ctx.conf
+        args = (None, stride, padding, [1, 1, 1], False, [0, 0, 0], 1)
+        grad_x = grad_w = None
+        if ctx.needs_input_grad[0]:
+            grad_x = torch.ops.aten.convolution_backward(grad_out, x, weight, *args, [True, False, False])[0]
+        if ctx.needs_input_grad[1]:
+            for i in range(0, x.shape[0], chunk):
+                part = torch.ops.aten.convolution_backward(
+                    grad_out[i : i + chunk], x[i : i + chunk], weight, *args, [False, True, False]
+                )[1]
+                grad_w = part if grad_w is None else grad_w.add_(part)
+        return grad_x, grad_w, None, None, None
 
 
 class ConvBlock(nn.Module):
@@ -159,12 +193,28 @@ class ConvBlock(nn.Module):
             c = self.conv
             y = self._fn(x, w, b, c.stride, c.padding, c.dilation, c.groups)
         else:
-            y = self.conv(x)
+            y = self._conv_train(x)
             if self.norm is not None:
                 y = self.norm(y)
         if residual is not None:
             y = y + residual
         return F.relu(y, inplace=True) if self.relu else y
+
+    def _conv_train(self, x: torch.Tensor) -> torch.Tensor:
+        """The convolution with autograd; a large 3-D batch on the CPU takes its weight gradient
+        in chunks of samples (``_WGRAD_MAX_ELEMENTS``), the same sums in another order."""
+        c = self.conv
+        if (
+            x.dim() == 5
+            and x.device.type == "cpu"
+            and c.bias is None
+            and c.weight.requires_grad
+            and torch.is_grad_enabled()
+            and x.numel() > _WGRAD_MAX_ELEMENTS
+        ):
+            chunk = max(1, _WGRAD_MAX_ELEMENTS // x[0].numel())
+            return _Conv3dChunkedWeightGrad.apply(x, c.weight, c.stride, c.padding, chunk)
+        return c(x)
 
 
 class ResBlock2D(nn.Module):

@@ -360,6 +360,46 @@ def test_fused_inference_kernels_match_the_plain_path(monkeypatch):
     assert logits.requires_grad
 
 
+def test_chunked_weight_gradient_of_3d_convolutions_matches_the_batch(monkeypatch):
+    """Large 3-D batches take their weight gradients in chunks of samples on the CPU (oneDNN
+    falls back to a slow kernel above 2**28 input elements); the gradients stay the same. The
+    chunk limit is lowered so that the small model's 5-sample batch splits into 2 + 2 + 1 at the
+    first layer and into other sizes further down. In float64: in float32 the two summation
+    orders already differ by about 1% in the first layer's gradient (rounding amplified through
+    train-mode batch norm), which would hide a real bug."""
+    import common.network as network
+
+    cfg, model = small_model("model.rotations=8", seed=3)
+    model.double().train()
+    scenes = torch.cat([random_scene(cfg, s) for s in range(5)]).double()
+    grippers = random_gripper(cfg, 5, 4).double()
+    k = torch.tensor([0, 3, 5, 6, 7])
+    action = torch.tensor([[3, 4, 0, 0], [10, 20, 3, 1], [16, 16, 5, 2], [30, 1, 6, 3], [0, 31, 7, 4]])
+    label = torch.tensor([1, 0, 1, 0, 1])
+    calls = []
+    original = network._Conv3dChunkedWeightGrad.apply
+
+    def grads(limit: int) -> dict:
+        monkeypatch.setattr(network, "_WGRAD_MAX_ELEMENTS", limit)
+        model.zero_grad(set_to_none=True)
+        loss = model.loss(model.forward_train(scenes, grippers, k), action, label)
+        loss.backward()
+        return {n: p.grad.clone() for n, p in model.named_parameters()}
+
+    def counted(*args):
+        calls.append(args[-1])
+        return original(*args)
+
+    monkeypatch.setattr(network._Conv3dChunkedWeightGrad, "apply", counted)
+    whole = grads(2**40)
+    assert calls == []
+    per_sample = 2 * 32 * 32 * 16
+    chunked = grads(2 * per_sample)
+    assert calls and calls[0] == 2  # the scene's first layer: chunks of two samples
+    for name, g in whole.items():
+        assert float((chunked[name] - g).abs().max()) <= 1e-9 * max(1.0, float(g.abs().max())), name
+
+
 def test_frozen_stem_trains_everything_but_the_first_block():
     cfg, model = small_model("model.train_stem=false")
     model.train()
