@@ -42,7 +42,8 @@ correlation of all rotations with all kernels is one call (``model.correlation``
 (``embedding_bag``) that writes that layout directly, and on CPU in eval mode each conv runs with
 its batch norm folded in and its bias, ReLU and residual add fused (oneDNN ``_convolution_pointwise``).
 Training (:meth:`AdaGraspNet.forward_train`) evaluates only each sample's executed rotation and
-opening, as the paper does.
+opening, as the paper does; on the CPU a 3-D layer whose batch input exceeds 2**27 elements takes
+its weight gradient in chunks of samples (oneDNN's fast kernel stops at 2**28; ``_WGRAD_MAX_ELEMENTS``).
 
 Use::
 
@@ -85,9 +86,10 @@ rotations of the scene in one batch)."""
 _WGRAD_MAX_ELEMENTS = 2**27
 """Largest input (elements) of one weight-gradient call of a 3-D convolution on the CPU; larger
 batches are cut into chunks of whole samples. oneDNN 3.x falls back to im2col + GEMM for the
-weight gradient of a channels-last 3-D convolution whose input exceeds 2**28 elements: the
-paper-scale 16 -> 32 layer (8 x 16 x 192 x 192 x 64) took 0.85 s for the batch and 0.29 s in
-chunks of 4 samples on two AVX-512 cores (tests/bench/bench_model.py figures in docs/RESULTS.md)."""
+weight gradient of a channels-last 3-D convolution whose input exceeds 2**28 elements: on two
+AVX-512 cores the paper-scale 16 -> 32 layer (8 x 16 x 192 x 192 x 64) took 0.68 s for the
+whole batch and 0.26-0.29 s in chunks of 1-4 samples (7 samples were still fast, 8 not); the
+other layers are below the limit (docs/RESULTS.md, "Speed of the network")."""
 
 _FUSED = getattr(torch.ops.mkldnn, "_convolution_pointwise", None) if torch.backends.mkldnn.is_available() else None
 """oneDNN convolution with a fused bias, ReLU and residual add (CPU inference only), if this torch has it."""

@@ -36,6 +36,9 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   (1 gripper x 5 openings x R rotations, ``infer_default`` / ``infer_paper``) and the batch-8
   training step (``train_step_default`` / ``train_step_paper``); ``max_abs_diff_default``, the
   largest difference of the two paths' probabilities for the timed default-scale scene;
+  ``wgrad_chunking_paper``: the paper-scale training step with the 3-D weight gradients taken in
+  chunks of samples (``common.network._WGRAD_MAX_ELEMENTS``, the default) against one call for
+  the whole batch, alternately (``chunked_s``, ``whole_batch_s``, ``ratio``);
 - ``threads``: torch intra-op threads; ``device`` (``--device``; on CUDA every timed run ends
   with a device synchronisation, and ``gpu``, ``torch``, the TF32 settings, the peak allocated
   memory ``cuda_peak_gib`` and ``cuda_cpu_max_abs_diff_default``, the largest difference between
@@ -184,6 +187,24 @@ def bench_reference(cfg, repeats: int, device: torch.device, train: bool = True,
         a, b = paired_medians(train_step_fn(cfg, device), theirs_step, repeats, device)
         out["train_step"] = {"ours_s": a, "reference_s": b, "speedup": b / a}
     return out
+
+
+def bench_wgrad_chunking(cfg, repeats: int, device: torch.device) -> dict:
+    """The training step with chunked 3-D weight gradients (the default) against whole-batch ones."""
+    import common.network as network
+
+    chunked, whole_step = train_step_fn(cfg, device), train_step_fn(cfg, device)
+    limit = network._WGRAD_MAX_ELEMENTS
+
+    def whole():
+        network._WGRAD_MAX_ELEMENTS = 2**62
+        try:
+            whole_step()
+        finally:
+            network._WGRAD_MAX_ELEMENTS = limit
+
+    a, b = paired_medians(chunked, whole, repeats, device)
+    return {"chunked_s": a, "whole_batch_s": b, "ratio": b / a}
 
 
 def infer_fns(cfg, device: torch.device, grippers: int = 1):
@@ -544,6 +565,8 @@ def main(argv: list[str] | None = None) -> int:
         if not args.skip_paper:
             ref = bench_reference(paper, n, device, train=not args.skip_paper_train)
             out["reference"].update({f"{k}_paper": v for k, v in ref.items()})
+            if not args.skip_paper_train and device.type == "cpu":
+                out["reference"]["wgrad_chunking_paper"] = bench_wgrad_chunking(paper, n, device)
     if device.type == "cuda":
         out["cuda_peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
     if args.flops:
