@@ -8,17 +8,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from test_network import SMALL as SMALL_GRIDS
+
 from common.config import load_config
 from common.network import build_model
 
-SMALL = [
-    "scene_grid.x_range=[-0.064, 0.064]",
-    "scene_grid.y_range=[-0.064, 0.064]",
-    "scene_grid.z_range=[0.0, 0.064]",
-    "gripper_grid.shape=[16, 16, 8]",
-    "model.rotations=8",
-]
-"""32 x 32 x 16 scene cells at 4 mm, 16 x 16 x 8 gripper cells at 8 mm, R = 8."""
+SMALL = SMALL_GRIDS + ["model.rotations=8"]
+"""The network tests' small grids (32 x 32 x 16 scene cells, 16 x 16 x 8 gripper cells), R = 8."""
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -115,45 +115,35 @@ def gripper_of(cfg, n: int, seed: int) -> torch.Tensor:
     return torch.from_numpy(out)
 
 
+def timed(fn, device: torch.device) -> float:
+    """Wall seconds of one call of ``fn``; on CUDA the call ends with a synchronisation, so
+    queued kernels are inside the figure."""
+    t0 = time.perf_counter()
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - t0
+
+
 def median_time(fn, repeats: int, device: torch.device) -> float:
-    """Median wall seconds of ``fn`` over ``repeats`` runs after one warm-up; on CUDA each run
-    ends with a synchronisation, so queued kernels are inside the figure."""
-
-    def run():
-        fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-
-    run()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    """Median of :func:`timed` over ``repeats`` runs after one warm-up."""
+    timed(fn, device)
+    return statistics.median([timed(fn, device) for _ in range(repeats)])
 
 
 def paired_medians(a, b, repeats: int, device: torch.device) -> tuple[float, float]:
     """Median wall seconds of ``a`` and of ``b``, timed alternately after one warm-up each; the
     order swaps every round (a b, b a, ...), so neither gains from always running second."""
-
-    def timed(fn) -> float:
-        t0 = time.perf_counter()
-        fn()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return time.perf_counter() - t0
-
-    timed(a)
-    timed(b)
+    timed(a, device)
+    timed(b, device)
     ta, tb = [], []
     for r in range(repeats):
         if r % 2 == 0:
-            ta.append(timed(a))
-            tb.append(timed(b))
+            ta.append(timed(a, device))
+            tb.append(timed(b, device))
         else:
-            tb.append(timed(b))
-            ta.append(timed(a))
+            tb.append(timed(b, device))
+            ta.append(timed(a, device))
     return statistics.median(ta), statistics.median(tb)
 
 
