@@ -174,6 +174,17 @@ class BulletGripper:
         """Ids of the bodies the gripper touches now."""
         return {c[2] for c in p.getContactPoints(bodyA=self.body_id, physicsClientId=self.client) if c[2] != self.body_id}
 
+    def coupling_error(self) -> float:
+        """Largest |q_joint - (multiplier * q_driver + offset)| (m or rad) over the ``mimic`` and
+        ``measured`` couplings now (0 without them): how far the linkage is from its kinematics."""
+        q = self.joint_state()
+        err = 0.0
+        for c in self.spec.couplings:
+            if c.mode in ("mimic", "measured"):
+                want = c.multiplier * q[c.driver] + c.offset * (self.scale if c.prismatic else 1.0)
+                err = max(err, abs(q[c.joint] - want))
+        return err
+
     def finger_aperture(self) -> float:
         """Metres between the finger pads: the diameter of the widest cylinder about the approach
         axis that no finger surface enters, from the fingertips up to ``aperture_band`` above the TCP
@@ -227,6 +238,8 @@ class LiftResult:
     """TCP height (m) where the descent stopped."""
     reason: str
     """Empty on success, else why it failed."""
+    coupling_error_held: float
+    """:meth:`BulletGripper.coupling_error` when closing on the object ended (m or rad)."""
 
 
 def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: float = 0.04,
@@ -293,6 +306,7 @@ def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: f
             still = still + 1 if max(abs(v) for v in vel) < 0.01 else 0
             if k * time_step > 0.3 and still * time_step >= 0.1:
                 break
+        held_error = g.coupling_error()
         T = g.tcp_pose()
         steps = int(1.0 / time_step)
         for k in range(1, steps + 1):
@@ -305,6 +319,6 @@ def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: f
         rise = p.getBasePositionAndOrientation(obj, physicsClientId=client)[0][2] - z0
         ok = rise >= lift_min
         reason = "" if ok else f"{shape} rose only {rise:.3f} m (needs {lift_min} m)"
-        return LiftResult(ok, float(rise), float(contact_z), reason)
+        return LiftResult(ok, float(rise), float(contact_z), reason, float(held_error))
     finally:
         p.disconnect(physicsClientId=client)

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from actors.grasp import execute_grasp, max_attempts
+from actors.grasp import FAILURE_MODES, execute_grasp, max_attempts
 from actors.objects import ObjectSetError, object_names
 from actors.policies import make_policy
 from actors.rollout import episode_seed
@@ -321,6 +321,8 @@ class EvalWorker:
                         "opening": outcome.opening,
                         "score": float(score),
                         "success": bool(outcome.success),
+                        "failure": outcome.failure,
+                        "stopped_at_contact": bool(outcome.stopped_at_contact),
                         "lifted_targets": len(outcome.lifted_targets),
                         "lifted_obstacles": len(outcome.lifted_obstacles),
                     }
@@ -447,13 +449,15 @@ def summarise(plan: EvalPlan, results: list[dict], argv: list[str], grippers: st
     """
     per: dict[str, dict] = {}
     for name in plan.gripper_names:
-        per[name] = {"episodes": 0, "attempts": 0, "successes": 0}
+        per[name] = {"episodes": 0, "attempts": 0, "successes": 0, "failures": dict.fromkeys(FAILURE_MODES, 0)}
     for r in results:
         for name in {t["gripper"] for t in r["trials"]} | ({r["gripper"]} if r["gripper"] is not None else set()):
             per[name]["episodes"] += 1
         for t in r["trials"]:
             per[t["gripper"]]["attempts"] += 1
             per[t["gripper"]]["successes"] += int(t["success"])
+            if not t["success"]:
+                per[t["gripper"]]["failures"][t["failure"]] += 1
     for v in per.values():
         v["rate"] = _rate(v["successes"], v["attempts"])
     attempts = sum(r["attempts"] for r in results)
@@ -555,9 +559,15 @@ def table_markdown(results: list[tuple[str, dict]]) -> str:
     if len(results) == 1:
         s = results[0][1]
         head = "chosen attempts" if s["policy"] == "adagrasp" else "attempts"
-        lines += ["", f"| gripper | {head} | successes | rate |", "|---|---:|---:|---:|"]
+        lines += [
+            "",
+            f"| gripper | {head} | successes | rate | " + " | ".join(FAILURE_MODES) + " |",
+            "|---|---:|---:|---:|" + "---:|" * len(FAILURE_MODES),
+        ]
         for name, v in s["per_gripper"].items():
-            lines.append(f"| {name} | {v['attempts']} | {v['successes']} | {_fmt(v['rate'])} |")
+            failures = v.get("failures")  # result files written before failure modes were recorded lack it
+            counts = [str(failures[m]) if failures else "–" for m in FAILURE_MODES]
+            lines.append(f"| {name} | {v['attempts']} | {v['successes']} | {_fmt(v['rate'])} | " + " | ".join(counts) + " |")
     return "\n".join(lines) + "\n"
 
 

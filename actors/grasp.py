@@ -58,6 +58,13 @@ _ARRIVE_MAX_S = 0.25
 """Simulated seconds the descent may take beyond its nominal duration to arrive."""
 _LIFT_EMPTY_RISE = 0.05
 """After the TCP rose this far (m) without touching any object, the lift ends as a failure."""
+FAILURE_MODES = ("missed", "slipped", "dropped", "extra_lift")
+"""What went wrong in a failed grasp (:attr:`GraspOutcome.failure`), in the order of the primitive:
+``missed``: the closed fingers touched no object (none between them, or it was pushed out while
+closing); ``slipped``: they held an object but the lift
+left every object behind; ``dropped``: the gripper still touched an object at the end of the
+lift, but no target ended above the lift height; ``extra_lift``: an obstacle, or more than one
+target, ended above it."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,21 @@ class GraspOutcome:
     """The descent ended on contact before the grasp height."""
     steps: int
     """Physics steps taken by the primitive."""
+    held_after_close: bool
+    """The gripper touched an object when closing ended."""
+    lost_on_lift: bool
+    """The lift ended early: the TCP rose ``_LIFT_EMPTY_RISE`` touching no object."""
+
+    @property
+    def failure(self) -> str | None:
+        """None for a success, else one of :data:`FAILURE_MODES`."""
+        if self.success:
+            return None
+        if self.lifted_obstacles or len(self.lifted_targets) > 1:
+            return "extra_lift"
+        if not self.held_after_close:
+            return "missed"
+        return "slipped" if self.lost_on_lift else "dropped"
 
 
 @dataclass(frozen=True)
@@ -219,6 +241,7 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
             np.abs(history[-1] - history[-1 - _CLOSE_STILL_STEPS]) < still
         ):
             break
+    held = bool(gripper.contact_bodies() & objects)
 
     # lift; end early once the gripper has left every object behind
     z = stop_z
@@ -250,6 +273,8 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
         stop_z=stop_z,
         stopped_at_contact=stopped_at_contact,
         steps=steps,
+        held_after_close=held,
+        lost_on_lift=empty,
     )
 
 

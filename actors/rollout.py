@@ -161,7 +161,7 @@ def run(args) -> dict:
                 if png_dir is not None and trials <= args.png_trials:
                     i, j, k, s = result.action
                     title = (
-                        f"ep {e} step {result.step}: {'success' if result.outcome.success else 'failure'}  "
+                        f"ep {e} step {result.step}: {result.outcome.failure or 'success'}  "
                         f"cell ({i},{j}) k={k} opening={openings[s]:.3f}\n"
                         f"{policy.name}, score {result.score:.2f}, {len(result.object_ids)} objects (obstacles outlined red)"
                     )

@@ -9,6 +9,7 @@ import torch
 import yaml
 
 from actors import evaluate as ev
+from actors.grasp import FAILURE_MODES
 from actors.rollout import episode_seed
 from common.checkpoint import save_checkpoint
 from common.config import load_config
@@ -74,12 +75,20 @@ def check_protocol(result, scene):
             assert t["executed"] == t["gripper"]
             assert t["opening"] == result["openings"][t["action"][3]]
             assert t["success"] == (t["lifted_targets"] == 1 and t["lifted_obstacles"] == 0)
+            assert (t["failure"] is None) == t["success"]
+            assert t["failure"] is None or t["failure"] in FAILURE_MODES
+            if t["lifted_obstacles"] or t["lifted_targets"] > 1:
+                assert t["failure"] == "extra_lift"
         total_a += r["attempts"]
         total_s += r["successes"]
     assert result["average"]["attempts"] == total_a and result["average"]["successes"] == total_s
     assert result["average"]["pooled_rate"] == pytest.approx(total_s / total_a)
     rates = [v["rate"] for v in result["per_gripper"].values()]
     assert result["rate"] == pytest.approx(np.mean(rates))
+    for name, v in result["per_gripper"].items():
+        modes = [t["failure"] for r in result["episode_results"] for t in r["trials"] if t["gripper"] == name]
+        assert v["failures"] == {m: modes.count(m) for m in FAILURE_MODES}
+        assert sum(v["failures"].values()) == v["attempts"] - v["successes"]
 
 
 @pytest.mark.parametrize("policy", ["heuristic", "random"])
@@ -368,7 +377,8 @@ def test_md_of_one_run_lists_every_gripper(small, tmp_path):
     assert text.startswith(f"| policy | single O_tr/G_{GRIPPER}+{OTHER} |\n")
     assert f"| fix-gripper | {result['rate']:.3f} |" in text
     for name, v in result["per_gripper"].items():
-        assert f"| {name} | {v['attempts']} | {v['successes']} |" in text
+        counts = " | ".join(str(v["failures"][m]) for m in FAILURE_MODES)
+        assert f"| {name} | {v['attempts']} | {v['successes']} | {v['rate']:.3f} | {counts} |" in text
     assert str(out) in text
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pybullet
 import pytest
 
-from actors.grasp import execute_grasp, grasp_pose, gripper_reach, label_scene
+from actors.grasp import FAILURE_MODES, GraspOutcome, execute_grasp, grasp_pose, gripper_reach, label_scene
 from actors.simulation import Simulation
 from common.config import load_config
 from common.geometry import cell_to_world, world_to_cell
@@ -41,6 +41,7 @@ def test_parallel_jaw_lifts_centred_cube_10_seeds():
     print(f"physics sanity: {successes}/10 centred cubes lifted")
     assert successes >= 9, [o for o, _ in results if not o.success]
     assert all(o.lifted_targets == ("primitive/box",) for o, _ in results if o.success)
+    assert all(o.failure is None and o.held_after_close and not o.lost_on_lift for o, _ in results if o.success)
     for o, reach in results:
         # top 4 cm - grasp depth 5 cm is below the table: the grasp height is clipped so the
         # lowest point of the gripper stays `table_clearance` above the table
@@ -97,7 +98,7 @@ def test_grasping_an_obstacle_fails(default_cfg):
         assert obs.obstacle.max() > 0.5, "the obstacle shows in the obstacle channel"
         outcome = execute_grasp(sim, gripper, (int(i), int(j), 0, 0), (1.0,), obs.heightmap)
         assert outcome.lifted_obstacles == ("primitive/obstacle",)
-        assert not outcome.success
+        assert not outcome.success and outcome.failure == "extra_lift"
         assert list(sim.objects) == [target], "the lifted obstacle is removed, the target stays"
 
 
@@ -114,7 +115,7 @@ def test_two_targets_in_one_grasp_fail(default_cfg):
         obs = sim.observe()
         outcome = execute_grasp(sim, gripper, (int(i), int(j), 0, 0), (1.0,), obs.heightmap)
         assert sorted(outcome.lifted_targets) == ["primitive/left", "primitive/right"], outcome
-        assert not outcome.success
+        assert not outcome.success and outcome.failure == "extra_lift"
         assert not sim.objects
 
 
@@ -128,8 +129,42 @@ def test_missed_grasp_fails_fast(default_cfg):
         i, j = world_to_cell(sim.grid, -0.1, -0.1)
         outcome = execute_grasp(sim, gripper, (int(i), int(j), 3, 0), (1.0,), obs.heightmap)
         assert not outcome.success and outcome.lifted_targets == ()
+        assert outcome.failure == "missed" and not outcome.held_after_close and outcome.lost_on_lift
         assert list(sim.objects) == [target]
         full_lift_steps = (default_cfg.sim.lift_to + default_cfg.sim.hold_s * default_cfg.sim.tcp_speed) / (
             default_cfg.sim.tcp_speed * default_cfg.sim.time_step
         )
         assert outcome.steps < full_lift_steps
+
+
+def test_heavy_cube_slips_out_of_the_grasp(default_cfg):
+    """The centred-cube grasp of the physics sanity test on a 20 kg cube, beyond what the jaws'
+    friction holds: the fingers touch it when closing ends, then lose it on the lift."""
+    with Simulation(default_cfg, seed=0) as sim:
+        gripper = sim.load_gripper(get_gripper(GRIPPER), 1.0)
+        i, j = world_to_cell(sim.grid, 0.0, 0.0)
+        xy = cell_to_world(sim.grid, i, j)
+        cube = sim.add_box([CUBE] * 3, [xy[0], xy[1], CUBE / 2])
+        pybullet.changeDynamics(cube, -1, mass=20.0, physicsClientId=sim.client)
+        sim.settle()
+        obs = sim.observe()
+        outcome = execute_grasp(sim, gripper, (int(i), int(j), 0, 0), (1.0,), obs.heightmap)
+        assert not outcome.success
+        assert outcome.held_after_close and outcome.lost_on_lift and outcome.failure == "slipped", outcome
+
+
+def test_failure_modes_follow_the_primitive():
+    """Each failure mode from the flags, in the primitive's order; a success has none."""
+    base = dict(grasp_position=(0.0, 0.0, 0.0), yaw=0.0, opening=1.0, stop_z=0.0, stopped_at_contact=False, steps=1)
+
+    def mode(success=False, targets=(), obstacles=(), held=True, lost=False):
+        return GraspOutcome(success=success, lifted_targets=targets, lifted_obstacles=obstacles,
+                            held_after_close=held, lost_on_lift=lost, **base).failure
+
+    assert mode(success=True, targets=("a",)) is None
+    assert mode(obstacles=("o",), targets=("a",)) == "extra_lift"
+    assert mode(targets=("a", "b")) == "extra_lift"
+    assert mode(held=False, lost=True) == "missed"
+    assert mode(held=True, lost=True) == "slipped"
+    assert mode(held=True, lost=False) == "dropped"
+    assert set(FAILURE_MODES) == {"missed", "slipped", "dropped", "extra_lift"}

@@ -127,6 +127,29 @@ def test_declared_target_coupling_keeps_closing_when_driver_is_blocked(client):
     g.remove()
 
 
+def test_coupling_error_is_the_largest_deviation_from_the_mimic_relation(client):
+    """Joints set by hand off their mimic relation: the error is the largest deviation."""
+    spec = get_gripper("xarm_gripper")
+    g = BulletGripper(client, spec, 1.0)
+    g.reset(Transform.from_yaw(0.0, (0, 0, 0.5)), 0.5)
+    assert g.coupling_error() < 1e-9, "reset puts every joint on its kinematics"
+    drive = spec.drive_joints[0].name
+    q = g.joint_state()
+    for c, shift in zip(spec.couplings, (0.05, -0.2, 0.1, 0.0, 0.03)):
+        p.resetJointState(g.body_id, g._joint[c.joint], q[c.joint] + shift, physicsClientId=client)
+    p.resetJointState(g.body_id, g._joint[drive], q[drive] + 0.01, physicsClientId=client)
+    shifts = [abs(s - 0.01 * c.multiplier) for c, s in zip(spec.couplings, (0.05, -0.2, 0.1, 0.0, 0.03))]
+    assert g.coupling_error() == pytest.approx(max(shifts), abs=1e-9)
+    g.remove()
+
+
+@pytest.mark.parametrize("name", ["wsg_50", "panda_hand"])
+def test_prismatic_mimic_stays_rigid_while_holding(name):
+    """The gear on a prismatic finger pair keeps the fingers on their kinematics under the grip."""
+    r = lift_test(get_gripper(name), 1.0, "box", 0.04)
+    assert r.success and r.coupling_error_held < 1e-3, r
+
+
 def test_in_contact_sees_the_table_and_honours_exclude(client):
     plane = p.loadURDF(str(Path(pybullet_data.getDataPath()) / "plane.urdf"), physicsClientId=client)
     g = BulletGripper(client, get_gripper("parallel_jaw-0"), 1.0)
@@ -388,6 +411,9 @@ def test_cli_check_passes_and_writes_png_and_json(tmp_path, capsys):
     assert report["passed"] and report["lift"]["box"]["success"] and report["lift"]["cylinder"]["success"]
     assert np.all(np.diff(report["apertures_sim"]) > -1e-3)
     assert (tmp_path / "parallel_jaw-0_encoding.png").stat().st_size > 10_000
+    held = report["lift"]["box"]["coupling_error_held"] + report["lift"]["cylinder"]["coupling_error_held"]
+    assert len(held) == 6 and report["coupling_error_held"] == pytest.approx(max(held), abs=1e-4)
+    assert "holding the lift-test objects" in out
 
 
 def test_cli_check_bad_spec_is_one_line(tmp_path, capsys):
