@@ -279,6 +279,9 @@ class LearnerConfig:
     state), for learning curves of greedy success; latest.pt alone is what --resume reads."""
     device: str = "auto"
     """Torch device for the learner: auto | cpu | cuda."""
+    precision: str = "fp32"
+    """Learner forward pass and loss: fp32 | bf16 (torch.autocast to bfloat16 on the learner's
+    device; weights, gradients and the Adam state stay float32; actors infer in float32)."""
 
 
 @dataclass
@@ -341,6 +344,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "model.rotate": ("scene", "kernel"),
     "model.correlation": ("fft", "grouped"),
     "learner.device": ("auto", "cpu", "cuda"),
+    "learner.precision": ("fp32", "bf16"),
     "actor.policy": ("adagrasp", "fix-gripper", "fix-config", "random", "heuristic"),
 }
 

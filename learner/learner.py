@@ -1,5 +1,6 @@
 """The learner: class-balanced batches from the replay -> augmentation -> loss on the executed
-action -> Adam step -> refreshed scores written back -> versioned weights.
+action (under bfloat16 autocast with ``learner.precision=bf16``) -> Adam step -> refreshed scores
+written back -> versioned weights.
 
 It is a plain object; ``learner.run`` decides whether it lives in this process or in a Ray
 actor. Call loop::
@@ -73,6 +74,8 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.learner.lr)
         self.generator = torch.Generator().manual_seed(seed)
         self.limiter = SamplesPerInsert.from_config(cfg.learner)
+        self.bf16 = cfg.learner.precision == "bf16"
+        """Forward pass and loss under bfloat16 autocast (``learner.precision``)."""
         self.stats = TrainStats()
         self.steps_since_publish = 0
         self.average = copy.deepcopy(self.model).eval().requires_grad_(False) if cfg.learner.ema_decay > 0 else None
@@ -123,8 +126,10 @@ class Learner:
             gripper = batch.gripper.to(self.device, non_blocking=True)
             action = action.to(self.device)
             label = batch.label.to(self.device)
-            logits = self.model.forward_train(scene, gripper, action[:, 2])
-            loss = self.model.loss(logits, action, label)
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+                logits = self.model.forward_train(scene, gripper, action[:, 2])
+                loss = self.model.loss(logits, action, label)
+            logits = logits.float()
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()

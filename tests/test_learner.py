@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from common.config import load_config
+from common.config import ConfigError, load_config
 from learner.learner import Learner, epsilon_at
 from learner.rate_limit import SamplesPerInsert
 from replay.client import ReplayClient, open_local_shards
-from replay.synthetic import synthetic_trial
+from replay.synthetic import FixedBatchReplay, synthetic_trial
 
 
 def test_rate_limiter_keeps_samples_per_insert():
@@ -170,3 +170,32 @@ def test_weight_average_survives_checkpoint_resume_and_export(filled_replay, tmp
     shipped = read_checkpoint(export_model(run, "avg", dest=tmp_path / "models") / "checkpoint.pt")
     assert "trained_model" not in shipped.extra["learner"] and shipped.optimizer is None
     assert all(torch.equal(shipped.model_state[k], average[k]) for k in average)
+
+
+def test_bf16_precision_matches_fp32_loss_and_keeps_float32_weights(filled_replay):
+    """learner.precision=bf16: the first step's loss (before any update) within 2% of fp32 on the
+    same weights and batch; weights, gradients and scores stay float32."""
+    cfg, client = filled_replay
+    cfg.learner.augment_prob = 0.0
+    b = client.sample(cfg.learner.batch_size)
+    fixed = FixedBatchReplay(b.scene, b.gripper, b.action, b.label.float())
+    losses = {}
+    for precision in ("fp32", "bf16"):
+        cfg.learner.precision = precision
+        torch.manual_seed(0)
+        learner = Learner(cfg, fixed, seed=0)
+        assert learner.bf16 == (precision == "bf16")
+        before = {k: v.clone() for k, v in learner.model.state_dict().items()}
+        losses[precision] = learner.train(1).loss
+        weights = learner.model.state_dict()
+        assert all(v.dtype == torch.float32 for v in weights.values() if v.is_floating_point())
+        assert all(p.grad is None or p.grad.dtype == torch.float32 for p in learner.model.parameters())
+        assert any(not torch.equal(v, before[k]) for k, v in weights.items() if v.is_floating_point())
+        scores = fixed.scores[-1]
+        assert scores.dtype == np.float32 and np.all((scores >= 0) & (scores <= 1))
+    assert np.isfinite(losses["bf16"]) and losses["bf16"] == pytest.approx(losses["fp32"], rel=0.02)
+
+
+def test_unknown_precision_is_one_line():
+    with pytest.raises(ConfigError, match=r"learner\.precision: expected one of \['fp32', 'bf16'\], got 'fp16'"):
+        load_config("default", ["learner.precision=fp16"])

@@ -21,6 +21,9 @@ Prints ONE JSON line of medians over ``--repeats`` timed runs (after one warm-up
   rot90(p(scene, k))| and the fraction of (opening, rotation) maps whose maximum is reached
   within one cell of where the original map's argmax cell turns to;
 - ``train_step_paper_frozen_stem_s``: the paper-scale step with ``model.train_stem=false``;
+- ``learner_step_precision_default`` / ``_paper`` (with ``--precision``): the learner step with
+  ``learner.precision`` fp32 and bf16 (bfloat16 autocast), timed alternately in one process:
+  ``fp32_s``, ``bf16_s``, ``speedup``;
 - ``speed_option_accuracy`` (with ``--accuracy-steps N``): the paper's model and both speed
   options trained N steps on the same synthetic grasping task (:func:`synth_accuracy`) and
   scored on held-out scenes;
@@ -57,11 +60,13 @@ Usage::
     python tests/bench/bench_model.py --device cuda --repeats 10 --set model.scene_chunk=1
     python tests/bench/bench_model.py --repeats 3 --threads 2 --process-env --skip-kernel --flops
     python tests/bench/bench_model.py --repeats 3 --threads 2 --process-env --skip-kernel --reference
+    python tests/bench/bench_model.py --repeats 5 --threads 1 --process-env --skip-kernel --skip-paper --precision
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import statistics
@@ -233,15 +238,32 @@ def count_gflop(fn) -> float:
     return counter.get_total_flops() / 1e9
 
 
-def bench_learner(cfg, repeats: int, device: torch.device) -> float:
-    """Seconds per :meth:`Learner.train` step (augmentation probability as configured)."""
+def learner_step_fn(cfg, device: torch.device):
+    """One :meth:`Learner.train` step on a fixed batch (augmentation probability as configured)."""
     B = cfg.learner.batch_size
     gen = torch.Generator().manual_seed(2)
     action = random_actions(B, cfg.scene_grid.shape[:2], cfg.model.rotations, cfg.scene_grid.shape[0] // 4, gen)
     replay = FixedBatchReplay(scene_of(cfg, B, 2), gripper_of(cfg, B, 2), action, (torch.arange(B) % 2).float())
     torch.manual_seed(0)
     learner = Learner(cfg, replay, device=device, seed=0)
-    return median_time(lambda: learner.train(1), repeats, device)
+    return lambda: learner.train(1)
+
+
+def bench_learner(cfg, repeats: int, device: torch.device) -> float:
+    """Seconds per :meth:`Learner.train` step (:func:`learner_step_fn`)."""
+    return median_time(learner_step_fn(cfg, device), repeats, device)
+
+
+def bench_precision(cfg, repeats: int, device: torch.device) -> dict:
+    """The learner step (:func:`learner_step_fn`) with ``learner.precision`` fp32 and bf16, timed
+    alternately: ``fp32_s``, ``bf16_s`` and ``speedup`` = fp32 / bf16."""
+    fns = {}
+    for precision in ("fp32", "bf16"):
+        c = copy.deepcopy(cfg)
+        c.learner.precision = precision
+        fns[precision] = learner_step_fn(c, device)
+    a, b = paired_medians(fns["fp32"], fns["bf16"], repeats, device)
+    return {"fp32_s": a, "bf16_s": b, "speedup": a / b}
 
 
 def cuda_cpu_diff(cfg, device: torch.device) -> float:
@@ -397,6 +419,7 @@ SPEED_OPTIONS = {
     "kernel": ["model.decoder_width=64", "model.rotate=kernel"],
     "frozen_stem": ["model.decoder_width=64", "model.train_stem=false"],
     "decoder32": ["model.decoder_width=32"],
+    "decoder32_bf16": ["model.decoder_width=32", "learner.precision=bf16"],
 }
 """The reference model (the paper's scene rotation, 64-channel decoder) and the speed options,
 compared by :func:`synth_accuracy`."""
@@ -448,8 +471,10 @@ def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[st
                 actions.append((i, j, k, s))
                 labels.append(int(want))
             action = torch.tensor(actions, device=device)
-            logits = model.forward_train(torch.cat(scenes).to(device), torch.cat(grips), action[:, 2])
-            loss = model.loss(logits, action, torch.tensor(labels, device=device))
+            with torch.autocast(torch.device(device).type, dtype=torch.bfloat16,
+                                enabled=cfg.learner.precision == "bf16"):
+                logits = model.forward_train(torch.cat(scenes).to(device), torch.cat(grips), action[:, 2])
+                loss = model.loss(logits, action, torch.tensor(labels, device=device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -493,6 +518,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run with the launcher's allocator settings (common/runtime.py), applied before torch loads")
     ap.add_argument("--reference", action="store_true",
                     help="also time the public code's schedule (tests/bench/reference.py) against ours, alternately")
+    ap.add_argument("--precision", action="store_true",
+                    help="also time the learner step with learner.precision fp32 against bf16, alternately")
     ap.add_argument("--accuracy-steps", type=int, default=0,
                     help="train scene- and kernel-rotation models this many steps on the synthetic task (0: skip)")
     ap.add_argument("--accuracy-seeds", type=int, default=3, help="seeds of the synthetic accuracy comparison")
@@ -548,6 +575,10 @@ def main(argv: list[str] | None = None) -> int:
             out["train_step_paper_s"] = bench_train(paper, n, device)
             out["learner_step_paper_s"] = bench_learner(paper, n, device)
             out["train_step_paper_frozen_stem_s"] = bench_train(config("paper", "model.train_stem=false"), n, device)
+    if args.precision:
+        out["learner_step_precision_default"] = bench_precision(default, n, device)
+        if not args.skip_paper and not args.skip_paper_train:
+            out["learner_step_precision_paper"] = bench_precision(paper, n, device)
     if args.reference:
         ref = bench_reference(default, n, device, diff=True)
         out["reference"] = {"max_abs_diff_default": ref.pop("max_abs_diff")}
