@@ -61,10 +61,9 @@ _LIFT_EMPTY_RISE = 0.05
 FAILURE_MODES = ("missed", "slipped", "dropped", "extra_lift")
 """What went wrong in a failed grasp (:attr:`GraspOutcome.failure`), in the order of the primitive:
 ``missed``: the closed fingers touched no object (none between them, or it was pushed out while
-closing); ``slipped``: they held an object but the lift
-left every object behind; ``dropped``: the gripper still touched an object at the end of the
-lift, but no target ended above the lift height; ``extra_lift``: an obstacle, or more than one
-target, ended above it."""
+closing); ``slipped``: they held an object but the lift left every object behind; ``dropped``:
+the gripper still touched an object at the end of the lift, but no target ended above the lift
+height; ``extra_lift``: an obstacle, or more than one target, ended above it."""
 
 
 @dataclass(frozen=True)
