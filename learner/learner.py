@@ -34,6 +34,12 @@ def epsilon_at(cfg: Config, trials: int) -> float:
     return lc.epsilon_start + frac * (lc.epsilon_end - lc.epsilon_start)
 
 
+def precision_autocast(device: torch.device, precision: str) -> torch.autocast:
+    """The autocast context of a training forward pass and loss at ``learner.precision``: bfloat16
+    on ``device`` for ``bf16``, a disabled one (float32) for ``fp32``."""
+    return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
 def resolve_device(name: str) -> torch.device:
     """``auto`` -> cuda when available, else cpu."""
     if name == "auto":
@@ -74,8 +80,6 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.learner.lr)
         self.generator = torch.Generator().manual_seed(seed)
         self.limiter = SamplesPerInsert.from_config(cfg.learner)
-        self.bf16 = cfg.learner.precision == "bf16"
-        """Forward pass and loss under bfloat16 autocast (``learner.precision``)."""
         self.stats = TrainStats()
         self.steps_since_publish = 0
         self.average = copy.deepcopy(self.model).eval().requires_grad_(False) if cfg.learner.ema_decay > 0 else None
@@ -126,7 +130,7 @@ class Learner:
             gripper = batch.gripper.to(self.device, non_blocking=True)
             action = action.to(self.device)
             label = batch.label.to(self.device)
-            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            with precision_autocast(self.device, self.cfg.learner.precision):
                 logits = self.model.forward_train(scene, gripper, action[:, 2])
                 loss = self.model.loss(logits, action, label)
             logits = logits.float()

@@ -135,11 +135,12 @@ def test_coupling_error_is_the_largest_deviation_from_the_mimic_relation(client)
     assert g.coupling_error() < 1e-9, "reset puts every joint on its kinematics"
     drive = spec.drive_joints[0].name
     q = g.joint_state()
-    for c, shift in zip(spec.couplings, (0.05, -0.2, 0.1, 0.0, 0.03)):
+    shifts = (0.05, -0.2, 0.1, 0.0, 0.03)
+    for c, shift in zip(spec.couplings, shifts):
         p.resetJointState(g.body_id, g._joint[c.joint], q[c.joint] + shift, physicsClientId=client)
     p.resetJointState(g.body_id, g._joint[drive], q[drive] + 0.01, physicsClientId=client)
-    shifts = [abs(s - 0.01 * c.multiplier) for c, s in zip(spec.couplings, (0.05, -0.2, 0.1, 0.0, 0.03))]
-    assert g.coupling_error() == pytest.approx(max(shifts), abs=1e-9)
+    deviations = [abs(s - 0.01 * c.multiplier) for c, s in zip(spec.couplings, shifts)]
+    assert g.coupling_error() == pytest.approx(max(deviations), abs=1e-9)
     g.remove()
 
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from common.config import ConfigError, load_config
-from learner.learner import Learner, epsilon_at
+from learner.learner import Learner, epsilon_at, precision_autocast
 from learner.rate_limit import SamplesPerInsert
 from replay.client import ReplayClient, open_local_shards
 from replay.synthetic import FixedBatchReplay, synthetic_trial
@@ -184,7 +184,8 @@ def test_bf16_precision_matches_fp32_loss_and_keeps_float32_weights(filled_repla
         cfg.learner.precision = precision
         torch.manual_seed(0)
         learner = Learner(cfg, fixed, seed=0)
-        assert learner.bf16 == (precision == "bf16")
+        with precision_autocast(learner.device, cfg.learner.precision):
+            assert torch.is_autocast_enabled(learner.device.type) == (precision == "bf16")
         before = {k: v.clone() for k, v in learner.model.state_dict().items()}
         losses[precision] = learner.train(1).loss
         weights = learner.model.state_dict()

@@ -86,7 +86,7 @@ import torch  # noqa: E402
 
 from common.config import load_config  # noqa: E402
 from common.network import build_model, count_parameters  # noqa: E402
-from learner.learner import Learner  # noqa: E402
+from learner.learner import Learner, precision_autocast  # noqa: E402
 from replay.synthetic import FixedBatchReplay, random_actions  # noqa: E402
 from reference import reference_copy, reference_predict, reference_train_step_fn  # noqa: E402
 
@@ -471,8 +471,7 @@ def synth_accuracy_one(steps: int, eval_scenes: int, seed: int, options: list[st
                 actions.append((i, j, k, s))
                 labels.append(int(want))
             action = torch.tensor(actions, device=device)
-            with torch.autocast(torch.device(device).type, dtype=torch.bfloat16,
-                                enabled=cfg.learner.precision == "bf16"):
+            with precision_autocast(torch.device(device), cfg.learner.precision):
                 logits = model.forward_train(torch.cat(scenes).to(device), torch.cat(grips), action[:, 2])
                 loss = model.loss(logits, action, torch.tensor(labels, device=device))
             opt.zero_grad(set_to_none=True)
