@@ -1,4 +1,10 @@
-"""A gripper body in one PyBullet client, moved kinematically by a fixed constraint on its base.
+"""A gripper body in one PyBullet client, carried by a fixed-base virtual arm.
+
+The arm is four motorised joints (prismatic x, y, z, then revolute yaw about world z) added
+above the gripper's base link in a generated URDF (:func:`mounted_urdf`); its last frame is the
+top-down TCP frame, so the joint targets are the TCP position and yaw. A stiff arm, unlike a
+free-floating base held by a constraint, keeps PyBullet's gear constraints between revolute
+finger joints rigid while the fingers squeeze an object.
 
 Couplings (URDF ``<mimic>`` and declared ones; PyBullet ignores ``<mimic>``): a ``mimic``
 coupling is a JOINT_GEAR constraint between the driver and the coupled joint (a rigid,
@@ -25,13 +31,24 @@ Call loop::
 
 from __future__ import annotations
 
+import hashlib
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pybullet as p
 
+from common.config import SimConfig
 from common.geometry import Transform
-from common.gripper import GripperModel, GripperSpec, aperture_from_points, joint_positions, scaled_urdf
+from common.gripper import (
+    GripperModel,
+    GripperSpec,
+    _atomic_write,
+    aperture_from_points,
+    joint_positions,
+    scaled_urdf,
+)
 
 
 CLOSE_MAX_S = 2.0
@@ -39,16 +56,93 @@ CLOSE_MAX_S = 2.0
 (< 0.01 m/s or rad/s) for 0.1 s."""
 GEAR_FORCE_FACTOR = 10.0
 """Maximum force of a gear (mimic) constraint, as a multiple of the spec's coupling force."""
+GEAR_ERP = 1.0
+"""Error reduction of a gear constraint: the whole position error is corrected every step."""
+ARM_JOINTS = ("arm_x", "arm_y", "arm_z", "arm_yaw")
+"""Joints of the virtual arm, world root to TCP frame: prismatic x, y, z (m), revolute yaw (rad)."""
+ARM_REACH = 10.0
+"""Metres: limit of each prismatic arm joint either side of the world origin."""
+ARM_LINK_MASS = 0.05
+"""Kilograms of each intermediate arm link (a small point-like inertia; no geometry)."""
+_TILT_TOL = 1e-6
+"""Largest |z_tcp . world z - 1| a TCP target may have: the arm only yaws."""
+
+
+def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> Path:
+    """Path of the scaled URDF (:func:`common.gripper.scaled_urdf`) with the virtual arm above
+    its base link: world -> arm_x -> arm_y -> arm_z -> arm_yaw -> fixed joint at ``T_tcp_base``
+    -> the gripper's base. Cached next to the scaled URDF, keyed by the TCP offset."""
+    scaled = scaled_urdf(spec, scale, visual_from_collision)
+    T_tcp_base = spec.T_base_tcp(scale).inverse()
+    rpy = _rpy(T_tcp_base.rotation)
+    xyz = T_tcp_base.translation
+    origin = {"xyz": " ".join(f"{v:.9g}" for v in xyz), "rpy": " ".join(f"{v:.9g}" for v in rpy)}
+    key = hashlib.sha1(f"{origin['xyz']}|{origin['rpy']}".encode()).hexdigest()[:10]
+    out = scaled.with_name(f"{scaled.stem}-arm-{key}.urdf")
+    if out.is_file():
+        return out
+    robot = ET.parse(scaled).getroot()
+    children = {j.find("child").get("link") for j in robot.findall("joint")}
+    roots = [link.get("name") for link in robot.findall("link") if link.get("name") not in children]
+    if len(roots) != 1:
+        raise RuntimeError(f"{spec.spec_path}: the processed URDF {scaled} has root links {roots}, not one")
+    names = {link.get("name") for link in robot.findall("link")} | {j.get("name") for j in robot.findall("joint")}
+    clash = sorted(names & ({"arm_world", "arm_tcp", "arm_mount"} | set(ARM_JOINTS) | {f"{j}_link" for j in ARM_JOINTS}))
+    if clash:
+        raise RuntimeError(f"{spec.spec_path}: URDF names {clash} clash with the virtual arm's")
+    links, joints = [], []
+    parent = "arm_world"
+    axes = {"arm_x": "1 0 0", "arm_y": "0 1 0", "arm_z": "0 0 1", "arm_yaw": "0 0 1"}
+    for name in ("arm_world",) + tuple(f"{j}_link" for j in ARM_JOINTS):
+        link = ET.Element("link", name=name)
+        inertial = ET.SubElement(link, "inertial")
+        ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
+        ET.SubElement(inertial, "mass", value=f"{ARM_LINK_MASS}")
+        ET.SubElement(inertial, "inertia", ixx="1e-5", iyy="1e-5", izz="1e-5", ixy="0", ixz="0", iyz="0")
+        links.append(link)
+    for name in ARM_JOINTS:
+        child = f"{name}_link"
+        kind = "continuous" if name == "arm_yaw" else "prismatic"
+        joint = ET.Element("joint", name=name, type=kind)
+        ET.SubElement(joint, "parent", link=parent)
+        ET.SubElement(joint, "child", link=child)
+        ET.SubElement(joint, "origin", xyz="0 0 0", rpy="0 0 0")
+        ET.SubElement(joint, "axis", xyz=axes[name])
+        if kind == "prismatic":
+            ET.SubElement(joint, "limit", lower=f"{-ARM_REACH}", upper=f"{ARM_REACH}", effort="1e9", velocity="1e3")
+        joints.append(joint)
+        parent = child
+    mount = ET.Element("joint", name="arm_mount", type="fixed")
+    ET.SubElement(mount, "parent", link=parent)
+    ET.SubElement(mount, "child", link=roots[0])
+    ET.SubElement(mount, "origin", **origin)
+    for k, el in enumerate(links + joints + [mount]):
+        robot.insert(k, el)
+    ET.indent(robot)
+    _atomic_write(out, ET.tostring(robot, encoding="unicode"))
+    return out
+
+
+def _rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """URDF roll, pitch, yaw (rad) of a (3, 3) rotation matrix, R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    pitch = float(np.arcsin(-np.clip(R[2, 0], -1.0, 1.0)))
+    if abs(R[2, 0]) < 1.0 - 1e-9:
+        roll = float(np.arctan2(R[2, 1], R[2, 2]))
+        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    else:
+        roll = float(np.arctan2(-R[1, 2], R[1, 1]))
+        yaw = 0.0
+    return roll, pitch, yaw
 
 
 class BulletGripper:
-    """A gripper body in one PyBullet client, moved kinematically by a fixed constraint on its base."""
+    """A gripper body in one PyBullet client, carried by a fixed-base virtual arm."""
 
     def __init__(self, client: int, spec: GripperSpec, scale: float = 1.0, visual_from_collision: bool = False) -> None:
         """``visual_from_collision`` renders the collision geometry (what the encoding sees)."""
         self.client, self.spec, self.scale = client, spec, float(scale)
-        urdf = scaled_urdf(spec, self.scale, visual_from_collision)
-        self.body_id = p.loadURDF(str(urdf), [0, 0, 2.0], useFixedBase=False,
+        urdf = mounted_urdf(spec, self.scale, visual_from_collision)
+        self.body_id = p.loadURDF(str(urdf), [0, 0, 0], useFixedBase=True,
                                   flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
         if self.body_id < 0:
             raise RuntimeError(f"{spec.spec_path}: PyBullet could not load {urdf}")
@@ -61,19 +155,14 @@ class BulletGripper:
         missing = [j for j in spec.joint_names if j not in self._joint]
         if missing:
             raise RuntimeError(f"{spec.spec_path}: joints {missing} missing from the loaded body")
-        dyn = p.getDynamicsInfo(self.body_id, -1, physicsClientId=client)
-        T_base_com = Transform.from_quat(dyn[4], dyn[3])
-        self._T_com_tcp = T_base_com.inverse() * spec.T_base_tcp(self.scale)
-        self._T_tcp_com = self._T_com_tcp.inverse()
+        self._arm = [self._joint[n] for n in ARM_JOINTS]
+        self._tcp_link = self._link[f"{ARM_JOINTS[-1]}_link"]
         for link in range(-1, p.getNumJoints(self.body_id, physicsClientId=client)):
             p.changeDynamics(self.body_id, link, lateralFriction=spec.friction, spinningFriction=0.002,
-                             rollingFriction=0.0, physicsClientId=client)
+                             rollingFriction=0.0, linearDamping=0.0, angularDamping=0.0, physicsClientId=client)
         self._drive = {d.name: d for d in spec.drive_joints}
         self._targets: dict[str, float] = {}
         self._max_force = spec.base_force
-        self._cid = p.createConstraint(self.body_id, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0],
-                                       parentFramePosition=[0, 0, 0], childFramePosition=[0, 0, 2.0],
-                                       physicsClientId=client)
         self._gears: list[int] = []
         for c in spec.couplings:
             if c.mode == "mimic" and abs(c.multiplier) > 1e-9:
@@ -85,7 +174,7 @@ class BulletGripper:
                 offset = c.offset * (self.scale if c.prismatic else 1.0)
                 # PyBullet's gear holds q_driver + ratio * q_joint = target
                 p.changeConstraint(gear, gearRatio=-1.0 / c.multiplier, relativePositionTarget=-offset / c.multiplier,
-                                   maxForce=GEAR_FORCE_FACTOR * spec.coupling_force, erp=0.2, physicsClientId=client)
+                                   maxForce=GEAR_FORCE_FACTOR * spec.coupling_force, erp=GEAR_ERP, physicsClientId=client)
                 self._gears.append(gear)
         self._geared = {c.joint for c in spec.couplings if c.mode == "mimic" and abs(c.multiplier) > 1e-9}
         self._model: GripperModel | None = None
@@ -93,32 +182,40 @@ class BulletGripper:
         self.reset(Transform.from_yaw(0.0, (0.0, 0.0, 2.0)), 1.0)
 
     # ---------------------------------------------------------------- pose
-    def _T_world_com(self) -> Transform:
-        pos, orn = p.getBasePositionAndOrientation(self.body_id, physicsClientId=self.client)
-        return Transform.from_quat(orn, pos)
+    def _arm_targets(self, T_world_tcp: Transform) -> list[float]:
+        """Arm joint values (x, y, z in m, yaw in rad) that put the TCP at ``T_world_tcp``; the yaw
+        is the branch nearest the arm's current yaw. Raises if the TCP target is not top-down."""
+        R = T_world_tcp.rotation
+        if abs(R[2, 2] - 1.0) > _TILT_TOL:
+            raise ValueError(f"TCP target tilts {np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))):.3g} deg; "
+                             "the virtual arm only yaws about world z")
+        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+        now = p.getJointState(self.body_id, self._arm[3], physicsClientId=self.client)[0]
+        yaw += 2.0 * np.pi * round((now - yaw) / (2.0 * np.pi))
+        x, y, z = (float(v) for v in T_world_tcp.translation)
+        return [x, y, z, yaw]
 
     def reset(self, T_world_tcp: Transform, opening: float) -> None:
-        """Teleport the base so the TCP is at ``T_world_tcp``; joints set to ``opening`` and held there."""
-        T_world_com = T_world_tcp * self._T_tcp_com
-        p.resetBasePositionAndOrientation(self.body_id, T_world_com.translation, T_world_com.as_quat(),
-                                          physicsClientId=self.client)
-        p.resetBaseVelocity(self.body_id, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)
+        """Teleport the arm so the TCP is at ``T_world_tcp``; joints set to ``opening`` and held there."""
+        for j, q in zip(self._arm, self._arm_targets(T_world_tcp)):
+            p.resetJointState(self.body_id, j, q, 0.0, physicsClientId=self.client)
         for name, q in joint_positions(self.spec, opening, self.scale).items():
             p.resetJointState(self.body_id, self._joint[name], q, 0.0, physicsClientId=self.client)
         self.move_tcp(T_world_tcp)
         self.set_opening_target(opening)
 
     def move_tcp(self, T_world_tcp: Transform, max_force: float | None = None) -> None:
-        """New target of the base constraint (the TCP goes to ``T_world_tcp``); the caller steps the sim."""
-        T_world_com = T_world_tcp * self._T_tcp_com
+        """New targets of the arm's joint motors (the TCP goes to ``T_world_tcp``) with at most
+        ``max_force`` (N on x, y, z; N m on yaw; default the spec's ``base_force``); the caller steps the sim."""
         self._max_force = self.spec.base_force if max_force is None else float(max_force)
-        p.changeConstraint(self._cid, jointChildPivot=T_world_com.translation,
-                           jointChildFrameOrientation=T_world_com.as_quat(), maxForce=self._max_force,
-                           physicsClientId=self.client)
+        for j, q in zip(self._arm, self._arm_targets(T_world_tcp)):
+            p.setJointMotorControl2(self.body_id, j, p.POSITION_CONTROL, targetPosition=q, targetVelocity=0.0,
+                                    force=self._max_force, physicsClientId=self.client)
 
     def tcp_pose(self) -> Transform:
         """Current ``T_world_tcp``."""
-        return self._T_world_com() * self._T_com_tcp
+        st = p.getLinkState(self.body_id, self._tcp_link, computeForwardKinematics=True, physicsClientId=self.client)
+        return Transform.from_quat(st[5], st[4])
 
     # ---------------------------------------------------------------- joints
     def set_opening_target(self, opening: float) -> None:
@@ -214,10 +311,9 @@ class BulletGripper:
         return self._reach[key]
 
     def remove(self) -> None:
-        """Remove the constraints and the body from the client."""
+        """Remove the gear constraints and the body from the client."""
         for gear in self._gears:
             p.removeConstraint(gear, physicsClientId=self.client)
-        p.removeConstraint(self._cid, physicsClientId=self.client)
         p.removeBody(self.body_id, physicsClientId=self.client)
 
 
@@ -244,7 +340,8 @@ class LiftResult:
 
 def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: float = 0.04,
               offset: tuple[float, float] = (0.0, 0.0), yaw: float = 0.0, mass: float = 0.1,
-              friction: float = 1.0, time_step: float = 1.0 / 240.0, lift_height: float = 0.2,
+              friction: float = 1.0, time_step: float = SimConfig.time_step,
+              solver_iterations: int = SimConfig.solver_iterations, lift_height: float = 0.2,
               lift_min: float = 0.1) -> LiftResult:
     """Top-down grasp of one object on a plane in a fresh DIRECT client; True if it is lifted.
 
@@ -259,7 +356,8 @@ def lift_test(spec: GripperSpec, scale: float = 1.0, shape: str = "box", size: f
     client = p.connect(p.DIRECT)
     try:
         p.setGravity(0, 0, -9.81, physicsClientId=client)
-        p.setTimeStep(time_step, physicsClientId=client)
+        p.setPhysicsEngineParameter(fixedTimeStep=time_step, numSolverIterations=solver_iterations,
+                                    physicsClientId=client)
         p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=client)
         plane = p.loadURDF("plane.urdf", physicsClientId=client)
         p.changeDynamics(plane, -1, lateralFriction=friction, physicsClientId=client)

@@ -16,9 +16,9 @@ base ends above ``sim.lift_height`` and no obstacle's does. Lifted objects are t
 are objects that left the scene grid.
 
 Cost is kept low without bending the physics: the descent starts just above the highest object
-(not from a fixed home height), the TCP moves ``tcp_speed * time_step`` per physics step through a
-force-limited constraint, closing ends as soon as the aperture stops changing, and the lift ends
-early (a failure) when the gripper has left every object behind.
+(not from a fixed home height), the TCP moves ``tcp_speed * time_step`` per physics step through
+the force-limited motors of the gripper's virtual arm, closing ends as soon as the aperture stops
+changing, and the lift ends early (a failure) when the gripper has left every object behind.
 
 Call loop::
 
@@ -205,7 +205,7 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
     rot = Transform.from_yaw(yaw).rotation
     gripper.reset(Transform(rot, np.array([position[0], position[1], start_z])), opening)
 
-    # descend until first contact or the grasp height; the base constraint trails a moving
+    # descend until first contact or the grasp height; the arm's motors trail a moving
     # target by a few millimetres, so the descent ends when the TCP itself arrives
     dz = cfg.tcp_speed * dt
     z = start_z

@@ -167,7 +167,8 @@ class Simulation:
         c = self.client
         pybullet.resetSimulation(physicsClientId=c)
         pybullet.setPhysicsEngineParameter(
-            fixedTimeStep=self.cfg.sim.time_step, deterministicOverlappingPairs=1, physicsClientId=c
+            fixedTimeStep=self.cfg.sim.time_step, numSolverIterations=self.cfg.sim.solver_iterations,
+            deterministicOverlappingPairs=1, physicsClientId=c,
         )
         pybullet.setGravity(0.0, 0.0, -9.81, physicsClientId=c)
         plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=c)

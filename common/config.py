@@ -120,6 +120,9 @@ class SimConfig:
     """The grasp height is the top surface at (i, j) minus this, metres, clipped to the table."""
     time_step: float = 1.0 / 240.0
     """Physics time step in seconds."""
+    solver_iterations: int = 300
+    """Constraint-solver iterations per physics step (PyBullet's default is 50; gear linkages
+    between revolute fingers yield under a grip with fewer)."""
     settle_velocity: float = 0.01
     """Objects are at rest when no point of any object moves faster than this (m/s, mean over a few steps)."""
     settle_max_s: float = 2.0
@@ -150,7 +153,7 @@ class SimConfig:
     tcp_speed: float = 0.5
     """Speed (m/s) of the gripper's descend and lift motions."""
     tcp_max_force: float = 200.0
-    """Maximum force (N) of the constraint that drives the gripper's TCP."""
+    """Maximum force (N; N m on yaw) of the virtual-arm motors that drive the gripper's TCP."""
     approach_clearance: float = 0.02
     """The gripper starts its descent this far (m) above the highest object."""
     table_clearance: float = 0.002
@@ -387,6 +390,7 @@ _RANGES: dict[str, tuple[float, float]] = {
     "sim.obstacle_obstacles": (0, 50),
     "sim.grasp_depth": (0.0, 1.0),
     "sim.time_step": (1e-4, 0.1),
+    "sim.solver_iterations": (1, 10000),
     "sim.settle_velocity": (1e-6, 10.0),
     "sim.settle_max_s": (0.0, 60.0),
     "sim.drop_half_extent": (0.0, 1.0),

@@ -133,7 +133,7 @@ class GripperSpec:
     source: Path
     """The original model file (URDF, SDF or MJCF)."""
     cut_link: str
-    """Root link of the hand (the base the fixed constraint holds)."""
+    """Root link of the hand (the base the virtual arm carries)."""
     drive_joints: tuple[DriveJoint, ...]
     """Motor-driven joints."""
     couplings: tuple[Coupling, ...]
@@ -157,7 +157,7 @@ class GripperSpec:
     max_velocity: float
     """Maximum joint speed of the drive motors (m/s or rad/s at scale 1)."""
     base_force: float
-    """Maximum force (N) of the fixed constraint that moves the base."""
+    """Maximum force (N; N m on yaw) of the virtual-arm motors that move the base when no force is given."""
     aperture_band: float
     """Metres at scale 1: finger geometry up to this far above the TCP counts for the aperture."""
     description: str = ""
