@@ -4,7 +4,8 @@ The arm is four motorised joints (prismatic x, y, z, then revolute yaw about wor
 above the gripper's base link in a generated URDF (:func:`mounted_urdf`); its last frame is the
 top-down TCP frame, so the joint targets are the TCP position and yaw. A stiff arm, unlike a
 free-floating base held by a constraint, keeps PyBullet's gear constraints between revolute
-finger joints rigid while the fingers squeeze an object.
+finger joints rigid while the fingers squeeze an object, given enough constraint-solver
+iterations in the client (``sim.solver_iterations``; :func:`lift_test` sets the same default).
 
 Couplings (URDF ``<mimic>`` and declared ones; PyBullet ignores ``<mimic>``): a ``mimic``
 coupling is a JOINT_GEAR constraint between the driver and the coupled joint (a rigid,

@@ -324,6 +324,18 @@ def _one_line(e: pytest.ExceptionInfo, *parts: str) -> None:
         assert part in msg, msg
 
 
+def test_link_named_like_the_virtual_arm_is_refused(tmp_path, client):
+    """A hand whose URDF already uses one of the arm's names gets one line naming the spec."""
+    data = _base(tmp_path)
+    urdf = tmp_path / "clash.urdf"
+    urdf.write_text(Path(data["source"]).read_text().replace('"palm"', '"arm_world"'))
+    data["source"], data["cut_link"] = str(urdf), "arm_world"
+    f = _write(tmp_path, data, "clash.yaml")
+    with pytest.raises(RuntimeError) as e:
+        BulletGripper(client, load_spec(f), 1.0)
+    _one_line(e, "clash.yaml", "arm_world", "virtual arm")
+
+
 def test_unknown_joint_names_file_and_field(tmp_path):
     data = _base(tmp_path)
     data["drive_joints"][0]["name"] = "no_such_joint"
