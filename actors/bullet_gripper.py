@@ -65,6 +65,8 @@ ARM_REACH = 10.0
 """Metres: limit of each prismatic arm joint either side of the world origin."""
 ARM_LINK_MASS = 0.05
 """Kilograms of each intermediate arm link (a small point-like inertia; no geometry)."""
+ARM_LAYOUT = "1"
+"""Bumped whenever the arm's URDF layout changes, so cached mounted URDFs are rebuilt."""
 _TILT_TOL = 1e-6
 """Largest |z_tcp . world z - 1| a TCP target may have: the arm only yaws."""
 
@@ -72,13 +74,14 @@ _TILT_TOL = 1e-6
 def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> Path:
     """Path of the scaled URDF (:func:`common.gripper.scaled_urdf`) with the virtual arm above
     its base link: world -> arm_x -> arm_y -> arm_z -> arm_yaw -> fixed joint at ``T_tcp_base``
-    -> the gripper's base. Cached next to the scaled URDF, keyed by the TCP offset."""
+    -> the gripper's base. Cached next to the scaled URDF, keyed by :data:`ARM_LAYOUT` and the
+    TCP offset."""
     scaled = scaled_urdf(spec, scale, visual_from_collision)
     T_tcp_base = spec.T_base_tcp(scale).inverse()
-    rpy = _rpy(T_tcp_base.rotation)
+    rpy = p.getEulerFromQuaternion(T_tcp_base.as_quat())  # URDF's roll-pitch-yaw convention
     xyz = T_tcp_base.translation
     origin = {"xyz": " ".join(f"{v:.9g}" for v in xyz), "rpy": " ".join(f"{v:.9g}" for v in rpy)}
-    key = hashlib.sha1(f"{origin['xyz']}|{origin['rpy']}".encode()).hexdigest()[:10]
+    key = hashlib.sha1(f"{ARM_LAYOUT}|{origin['xyz']}|{origin['rpy']}".encode()).hexdigest()[:10]
     out = scaled.with_name(f"{scaled.stem}-arm-{key}.urdf")
     if out.is_file():
         return out
@@ -88,13 +91,14 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     if len(roots) != 1:
         raise RuntimeError(f"{spec.spec_path}: the processed URDF {scaled} has root links {roots}, not one")
     names = {link.get("name") for link in robot.findall("link")} | {j.get("name") for j in robot.findall("joint")}
-    clash = sorted(names & ({"arm_world", "arm_tcp", "arm_mount"} | set(ARM_JOINTS) | {f"{j}_link" for j in ARM_JOINTS}))
+    arm_links = ("arm_world",) + tuple(f"{j}_link" for j in ARM_JOINTS)
+    clash = sorted(names & ({"arm_mount", *ARM_JOINTS, *arm_links}))
     if clash:
         raise RuntimeError(f"{spec.spec_path}: URDF names {clash} clash with the virtual arm's")
     links, joints = [], []
     parent = "arm_world"
     axes = {"arm_x": "1 0 0", "arm_y": "0 1 0", "arm_z": "0 0 1", "arm_yaw": "0 0 1"}
-    for name in ("arm_world",) + tuple(f"{j}_link" for j in ARM_JOINTS):
+    for name in arm_links:
         link = ET.Element("link", name=name)
         inertial = ET.SubElement(link, "inertial")
         ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
@@ -122,18 +126,6 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     ET.indent(robot)
     _atomic_write(out, ET.tostring(robot, encoding="unicode"))
     return out
-
-
-def _rpy(R: np.ndarray) -> tuple[float, float, float]:
-    """URDF roll, pitch, yaw (rad) of a (3, 3) rotation matrix, R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    pitch = float(np.arcsin(-np.clip(R[2, 0], -1.0, 1.0)))
-    if abs(R[2, 0]) < 1.0 - 1e-9:
-        roll = float(np.arctan2(R[2, 1], R[2, 2]))
-        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-    else:
-        roll = float(np.arctan2(-R[1, 2], R[1, 1]))
-        yaw = 0.0
-    return roll, pitch, yaw
 
 
 class BulletGripper:
