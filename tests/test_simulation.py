@@ -119,6 +119,18 @@ def test_reset_replaces_the_previous_scene(default_cfg):
         assert pybullet.getNumBodies(physicsClientId=sim.client) == 3, "table, fence and one object"
 
 
+def test_solver_iterations_reach_the_client_and_survive_a_reset(default_cfg):
+    cfg = load_config("default", ["sim.solver_iterations=123"])
+    with Simulation(cfg, seed=0) as sim:
+        sim.reset_scene("single", "train")
+        params = pybullet.getPhysicsEngineParameters(physicsClientId=sim.client)
+        assert params["numSolverIterations"] == 123
+        assert params["fixedTimeStep"] == pytest.approx(cfg.sim.time_step)
+    with pytest.raises(ConfigError) as info:
+        load_config("default", ["sim.solver_iterations=0"])
+    assert "sim.solver_iterations" in _one_line(info.value)
+
+
 def test_parked_gripper_is_not_seen(default_cfg):
     cfg = default_cfg
     cfg.sim.cameras = 4
