@@ -78,7 +78,7 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     TCP offset."""
     scaled = scaled_urdf(spec, scale, visual_from_collision)
     T_tcp_base = spec.T_base_tcp(scale).inverse()
-    rpy = p.getEulerFromQuaternion(T_tcp_base.as_quat())  # URDF's roll-pitch-yaw convention
+    rpy = _urdf_rpy(T_tcp_base.rotation)
     xyz = T_tcp_base.translation
     origin = {"xyz": " ".join(f"{v:.9g}" for v in xyz), "rpy": " ".join(f"{v:.9g}" for v in rpy)}
     key = hashlib.sha1(f"{ARM_LAYOUT}|{origin['xyz']}|{origin['rpy']}".encode()).hexdigest()[:10]
@@ -128,6 +128,16 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     return out
 
 
+def _urdf_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """URDF roll, pitch, yaw (rad) of a (3, 3) rotation, R = Rz(yaw) Ry(pitch) Rx(roll); exact
+    near pitch +-pi/2 too (the PR2's approach axis is the base x axis, pitch exactly pi/2)."""
+    cos_pitch = float(np.hypot(R[0, 0], R[1, 0]))
+    pitch = float(np.arctan2(-R[2, 0], cos_pitch))
+    if cos_pitch > 1e-9:
+        return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
+    return float(np.arctan2(-R[1, 2], R[1, 1])), pitch, 0.0
+
+
 class BulletGripper:
     """A gripper body in one PyBullet client, carried by a fixed-base virtual arm."""
 
@@ -150,6 +160,7 @@ class BulletGripper:
             raise RuntimeError(f"{spec.spec_path}: joints {missing} missing from the loaded body")
         self._arm = [self._joint[n] for n in ARM_JOINTS]
         self._tcp_link = self._link[f"{ARM_JOINTS[-1]}_link"]
+        # no velocity damping (PyBullet's default 0.04 applies to the whole multibody, arm included)
         for link in range(-1, p.getNumJoints(self.body_id, physicsClientId=client)):
             p.changeDynamics(self.body_id, link, lateralFriction=spec.friction, spinningFriction=0.002,
                              rollingFriction=0.0, linearDamping=0.0, angularDamping=0.0, physicsClientId=client)
@@ -175,22 +186,25 @@ class BulletGripper:
         self.reset(Transform.from_yaw(0.0, (0.0, 0.0, 2.0)), 1.0)
 
     # ---------------------------------------------------------------- pose
-    def _arm_targets(self, T_world_tcp: Transform) -> list[float]:
+    def _arm_targets(self, T_world_tcp: Transform, nearest: bool = True) -> list[float]:
         """Arm joint values (x, y, z in m, yaw in rad) that put the TCP at ``T_world_tcp``; the yaw
-        is the branch nearest the arm's current yaw. Raises if the TCP target is not top-down."""
+        is the branch nearest the arm's current yaw (``nearest``) or in (-pi, pi]. Raises if the
+        TCP target tilts more than :data:`_TILT_TOL` allows (about 1.4 mrad; a smaller tilt is
+        dropped: the arm only yaws)."""
         R = T_world_tcp.rotation
         if abs(R[2, 2] - 1.0) > _TILT_TOL:
             raise ValueError(f"TCP target tilts {np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))):.3g} deg; "
                              "the virtual arm only yaws about world z")
         yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-        now = p.getJointState(self.body_id, self._arm[3], physicsClientId=self.client)[0]
-        yaw += 2.0 * np.pi * round((now - yaw) / (2.0 * np.pi))
+        if nearest:
+            now = p.getJointState(self.body_id, self._arm[3], physicsClientId=self.client)[0]
+            yaw += 2.0 * np.pi * round((now - yaw) / (2.0 * np.pi))
         x, y, z = (float(v) for v in T_world_tcp.translation)
         return [x, y, z, yaw]
 
     def reset(self, T_world_tcp: Transform, opening: float) -> None:
         """Teleport the arm so the TCP is at ``T_world_tcp``; joints set to ``opening`` and held there."""
-        for j, q in zip(self._arm, self._arm_targets(T_world_tcp)):
+        for j, q in zip(self._arm, self._arm_targets(T_world_tcp, nearest=False)):
             p.resetJointState(self.body_id, j, q, 0.0, physicsClientId=self.client)
         for name, q in joint_positions(self.spec, opening, self.scale).items():
             p.resetJointState(self.body_id, self._joint[name], q, 0.0, physicsClientId=self.client)

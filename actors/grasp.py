@@ -57,7 +57,8 @@ _ARRIVE_TOL = 0.001
 _ARRIVE_MAX_S = 0.25
 """Simulated seconds the descent may take beyond its nominal duration to arrive."""
 _LIFT_EMPTY_RISE = 0.05
-"""After the TCP rose this far (m) without touching any object, the lift ends as a failure."""
+"""After the TCP's target rose this far (m; the TCP trails it) with the gripper touching no
+object, the lift ends as a failure."""
 FAILURE_MODES = ("missed", "slipped", "dropped", "extra_lift")
 """What went wrong in a failed grasp (:attr:`GraspOutcome.failure`), in the order of the primitive:
 ``missed``: the closed fingers touched no object (none between them, or it was pushed out while
@@ -91,7 +92,8 @@ class GraspOutcome:
     held_after_close: bool
     """The gripper touched an object when closing ended."""
     lost_on_lift: bool
-    """The lift ended early: the TCP rose ``_LIFT_EMPTY_RISE`` touching no object."""
+    """The lift ended early: the TCP's target rose ``_LIFT_EMPTY_RISE`` with the gripper
+    touching no object."""
 
     @property
     def failure(self) -> str | None:
@@ -206,7 +208,7 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
     gripper.reset(Transform(rot, np.array([position[0], position[1], start_z])), opening)
 
     # descend until first contact or the grasp height; the arm's motors trail a moving
-    # target by a few millimetres, so the descent ends when the TCP itself arrives
+    # target (by about 2 cm at 0.5 m/s), so the descent ends when the TCP itself arrives
     dz = cfg.tcp_speed * dt
     z = start_z
     stopped_at_contact = False

@@ -165,12 +165,17 @@ def test_revolute_mimic_stays_rigid_while_holding_an_off_centre_box(name):
 def test_virtual_arm_tracks_tcp_targets_and_rejects_tilt(client):
     """reset puts the TCP exactly on the target; move_tcp's motors follow a new position and a yaw
     past pi along the short way; a tilted target is refused."""
-    g = BulletGripper(client, get_gripper("pr2_gripper"), 1.0)
+    spec = get_gripper("pr2_gripper")
+    g = BulletGripper(client, spec, 1.0)
     target = Transform.from_yaw(0.4, (0.1, -0.2, 0.5))
     g.reset(target, 1.0)
     got = g.tcp_pose()
     assert np.allclose(got.translation, target.translation, atol=1e-9)
     assert np.allclose(got.rotation, target.rotation, atol=1e-9)
+    st = p.getLinkState(g.body_id, g._link[spec.cut_link], computeForwardKinematics=True, physicsClientId=client)
+    want = target * spec.T_base_tcp(1.0).inverse()
+    assert np.allclose(st[4], want.translation, atol=1e-7), "the hand's base sits at T_world_tcp * T_tcp_base"
+    assert np.allclose(Transform.from_quat(st[5], st[4]).rotation, want.rotation, atol=1e-6)
     for yaw in np.linspace(0.4, 3.6, 9):
         for _ in range(24):
             g.move_tcp(Transform.from_yaw(float(yaw), (0.15, -0.1, 0.4)))
@@ -322,6 +327,20 @@ def _one_line(e: pytest.ExceptionInfo, *parts: str) -> None:
     assert "\n" not in msg
     for part in parts:
         assert part in msg, msg
+
+
+def test_mount_rpy_round_trips_near_pitch_90_degrees():
+    """The arm's fixed-joint rpy rebuilds its rotation, also within mrad of pitch +-pi/2 (an
+    approach axis near the base x axis), where Euler angles from a quaternion lose precision."""
+    from actors.bullet_gripper import _urdf_rpy
+
+    rng = np.random.default_rng(0)
+    for k in range(300):
+        yaw, roll = rng.uniform(-3.1, 3.1, 2)
+        pitch = rng.uniform(-1.5, 1.5) if k % 2 else math.copysign(math.pi / 2, rng.normal()) + rng.normal() * 1e-3
+        R = np.array(p.getMatrixFromQuaternion(p.getQuaternionFromEuler([roll, pitch, yaw]))).reshape(3, 3)
+        back = np.array(p.getMatrixFromQuaternion(p.getQuaternionFromEuler(_urdf_rpy(R)))).reshape(3, 3)
+        assert np.abs(back - R).max() < 1e-6, (roll, pitch, yaw)
 
 
 def test_link_named_like_the_virtual_arm_is_refused(tmp_path, client):
