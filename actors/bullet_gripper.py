@@ -166,7 +166,6 @@ class BulletGripper:
                              rollingFriction=0.0, linearDamping=0.0, angularDamping=0.0, physicsClientId=client)
         self._drive = {d.name: d for d in spec.drive_joints}
         self._targets: dict[str, float] = {}
-        self._max_force = spec.base_force
         self._gears: list[int] = []
         for c in spec.couplings:
             if c.mode == "mimic" and abs(c.multiplier) > 1e-9:
@@ -214,10 +213,10 @@ class BulletGripper:
     def move_tcp(self, T_world_tcp: Transform, max_force: float | None = None) -> None:
         """New targets of the arm's joint motors (the TCP goes to ``T_world_tcp``) with at most
         ``max_force`` (N on x, y, z; N m on yaw; default the spec's ``base_force``); the caller steps the sim."""
-        self._max_force = self.spec.base_force if max_force is None else float(max_force)
+        force = self.spec.base_force if max_force is None else float(max_force)
         for j, q in zip(self._arm, self._arm_targets(T_world_tcp)):
             p.setJointMotorControl2(self.body_id, j, p.POSITION_CONTROL, targetPosition=q, targetVelocity=0.0,
-                                    force=self._max_force, physicsClientId=self.client)
+                                    force=force, physicsClientId=self.client)
 
     def tcp_pose(self) -> Transform:
         """Current ``T_world_tcp``."""
