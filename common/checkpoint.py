@@ -195,3 +195,46 @@ def load_checkpoint(
         first = " ".join(str(e).split())[:200]
         raise CheckpointError(f"{path}: model: weights do not fit the {ckpt.variant} network ({first})") from None
     return model.to(device).eval(), ckpt
+
+
+NETWORK_KEYS = (
+    "model.variant",
+    "model.channels",
+    "model.feature_cell",
+    "model.scene_widths",
+    "model.gripper_widths",
+    "model.decoder_width",
+    "scene_grid",
+    "gripper_grid",
+)
+"""Config keys that fix what a network's weights mean; they must agree to start from a checkpoint."""
+
+
+def initial_weights(cfg: Config) -> dict | None:
+    """The model weights ``cfg.learner.init_weights`` names (a path or ``model:NAME``), checked
+    against ``cfg``'s network; None when it is "".
+
+    Raises :class:`CheckpointError` naming the file and the first of :data:`NETWORK_KEYS` that
+    differs, or the weights that do not fit.
+    """
+    source = cfg.learner.init_weights
+    if not source:
+        return None
+    try:
+        ckpt = read_checkpoint(source)
+    except CheckpointError as e:
+        raise CheckpointError(f"learner.init_weights: {e}") from None
+    path = resolve_checkpoint(source)
+    mine, theirs = to_dict(cfg), to_dict(ckpt.cfg)
+    for key in NETWORK_KEYS:
+        a, b = mine, theirs
+        for part in key.split("."):
+            a, b = a[part], b[part]
+        if a != b:
+            raise CheckpointError(f"{path}: learner.init_weights: {key} is {b!r} there but {a!r} in this run")
+    try:
+        build_model(cfg).load_state_dict(ckpt.model_state)
+    except RuntimeError as e:
+        first = " ".join(str(e).split())[:200]
+        raise CheckpointError(f"{path}: learner.init_weights: weights do not fit this run's network ({first})") from None
+    return ckpt.model_state

@@ -275,6 +275,10 @@ class LearnerConfig:
     """Decay of an exponential moving average of the weights, updated every learner step; when
     above 0 the average is what actors act with and what checkpoints carry as the model (the
     trained weights are kept in latest.pt for resuming); 0 = off."""
+    init_weights: str = ""
+    """Checkpoint (a path or model:NAME) whose model weights start a new run, i.e. fine-tuning
+    (the optimiser, counters and epsilon schedule start fresh; its network and grids must match
+    this run's); "" = random initialisation. A resumed run ignores it."""
     checkpoint_minutes: float = 5.0
     """Minutes between checkpoints (one more is written at exit)."""
     keep_snapshots: bool = True

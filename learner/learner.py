@@ -180,6 +180,14 @@ class Learner:
             "generator": self.generator.get_state(),
         }
 
+    def start_from(self, weights: dict) -> None:
+        """Start a new run from trained ``weights`` (a model state dict; the average, when kept,
+        starts from them too); the optimiser and counters stay fresh."""
+        self.model.load_state_dict(weights)
+        if self.average is not None:
+            self.average.load_state_dict(weights)
+            self.average.clear_cache()
+
     def load_state_dict(self, state: dict) -> None:
         """Inverse of :meth:`state_dict`. Without a stored average (a run resumed with averaging
         newly switched on) the average restarts from the loaded weights."""

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
-from common.checkpoint import read_checkpoint, save_checkpoint
+from common.checkpoint import initial_weights, read_checkpoint, save_checkpoint
 from common.config import Config
 from common.policy import action_region
 from common.runtime import ray_init
@@ -86,6 +86,10 @@ class LearnerProcess:
                 "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
             })
             self.resumed_from = c.step
+        else:
+            weights = initial_weights(cfg)
+            if weights is not None:
+                self.learner.start_from(weights)
 
     def inserted(self) -> int:
         """Trials ever committed to the replay."""

@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights
 from common.config import Config, ConfigError, load_config, save_config
 
 
@@ -60,6 +61,11 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         cfg.run.max_trials = args.max_trials
     if args.max_minutes is not None:
         cfg.run.max_minutes = args.max_minutes
+    if not args.resume and cfg.learner.init_weights:
+        if not cfg.learner.init_weights.startswith(SHIPPED_PREFIX):
+            # Ray worker processes need not share the driver's working directory.
+            cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
+        initial_weights(cfg)  # a wrong learner.init_weights fails here, before anything starts
     run_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, run_dir / "config.yaml")
     return cfg, run_dir
@@ -69,7 +75,7 @@ def cli(argv: list[str]) -> int:
     args = parse_args(argv)
     try:
         cfg, run_dir = resolve(args)
-    except ConfigError as e:
+    except (ConfigError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     from learner.loop import run_distributed, run_local

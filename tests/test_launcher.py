@@ -97,6 +97,16 @@ def test_bad_config_value_is_one_line(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "learner.lr" in err[0]
 
 
+def test_init_weights_of_another_network_is_one_line_and_starts_nothing(tmp_path, capsys):
+    run_dir = tmp_path / "r"
+    shipped = "model:adagrasp-single-2core-95min-arm"  # default widths; the tiny config's are narrower
+    rc = cli(["--actors", "0", "--config", "tiny", "--set", f"learner.init_weights={shipped}", "--run-dir", str(run_dir)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert "learner.init_weights" in err[0] and "model.scene_widths" in err[0] and "checkpoint.pt" in err[0]
+    assert not run_dir.exists(), "a refused run leaves no run directory behind"
+
+
 def test_resume_requires_existing_run(tmp_path, capsys):
     rc = cli(["--resume", "--run-dir", str(tmp_path / "nothing")])
     err = capsys.readouterr().err.strip()

@@ -200,3 +200,51 @@ def test_bf16_precision_matches_fp32_loss_and_keeps_float32_weights(filled_repla
 def test_unknown_precision_is_one_line():
     with pytest.raises(ConfigError, match=r"learner\.precision: expected one of \['fp32', 'bf16'\], got 'fp16'"):
         load_config("default", ["learner.precision=fp16"])
+
+
+def test_init_weights_starts_a_new_run_from_a_checkpoint_and_resume_ignores_it(filled_replay, tmp_path):
+    from common.checkpoint import read_checkpoint
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    torch.manual_seed(0)
+    source = LearnerProcess(cfg, client._shards, str(tmp_path / "source"), seed=0, torch_threads=1)
+    source.learner.train(2)
+    trained = read_checkpoint(source.checkpoint(epsilon=0.3, inserted=12))
+    cfg.learner.init_weights = str(checkpoint_path(tmp_path / "source"))
+    cfg.learner.ema_decay = 0.9
+    torch.manual_seed(7)  # a different random initialisation, which the loaded weights replace
+    tuned = LearnerProcess(cfg, client._shards, str(tmp_path / "tuned"), seed=0, torch_threads=1)
+    for model in (tuned.learner.model, tuned.learner.average):
+        assert all(torch.equal(v, trained.model_state[k]) for k, v in model.state_dict().items())
+    assert tuned.resumed_from is None and tuned.learner.stats.steps == 0
+    assert not tuned.learner.optimizer.state_dict()["state"], "the optimiser starts fresh"
+    tuned.learner.train(1)
+    tuned.checkpoint(epsilon=0.5, inserted=12)
+    after = {k: v.clone() for k, v in tuned.learner.model.state_dict().items()}
+    resumed = LearnerProcess(cfg, client._shards, str(tmp_path / "tuned"), seed=0, torch_threads=1)
+    assert resumed.resumed_from == 1
+    assert all(torch.equal(v, after[k]) for k, v in resumed.learner.model.state_dict().items()), (
+        "a resumed run continues its own weights, not init_weights"
+    )
+
+
+def test_init_weights_of_another_network_fails_in_one_line(filled_replay, tmp_path):
+    from common.checkpoint import CheckpointError, initial_weights
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    proc = LearnerProcess(cfg, client._shards, str(tmp_path / "source"), seed=0, torch_threads=1)
+    path = proc.checkpoint(epsilon=0.5, inserted=12)
+    other = load_config("tiny", overrides=SMALL + ["model.variant=init-only", f"learner.init_weights={path}"])
+    with pytest.raises(CheckpointError) as e:
+        initial_weights(other)
+    msg = str(e.value)
+    assert "\n" not in msg and str(checkpoint_path(tmp_path / "source")) in msg
+    assert "learner.init_weights" in msg and "model.variant" in msg
+    wider = load_config("tiny", overrides=SMALL + ["model.channels=4", f"learner.init_weights={path}"])
+    with pytest.raises(CheckpointError, match="model.channels"):
+        initial_weights(wider)
+    missing = load_config("tiny", overrides=SMALL + [f"learner.init_weights={tmp_path / 'none.pt'}"])
+    with pytest.raises(CheckpointError, match=r"learner.init_weights: .*none.pt: checkpoint file not found"):
+        initial_weights(missing)
