@@ -199,6 +199,7 @@ def load_checkpoint(
 
 NETWORK_KEYS = (
     "model.variant",
+    "model.rotate",
     "model.channels",
     "model.feature_cell",
     "model.scene_widths",
@@ -210,9 +211,9 @@ NETWORK_KEYS = (
 """Config keys that fix what a network's weights mean; they must agree to start from a checkpoint."""
 
 
-def initial_weights(cfg: Config) -> dict | None:
-    """The model weights ``cfg.learner.init_weights`` names (a path or ``model:NAME``), checked
-    against ``cfg``'s network; None when it is "".
+def initial_weights(cfg: Config) -> Checkpoint | None:
+    """The checkpoint ``cfg.learner.init_weights`` names (a path or ``model:NAME``), its weights
+    checked against ``cfg``'s network; None when it is "".
 
     Raises :class:`CheckpointError` naming the file and the first of :data:`NETWORK_KEYS` that
     differs, or the weights that do not fit.
@@ -233,8 +234,9 @@ def initial_weights(cfg: Config) -> dict | None:
         if a != b:
             raise CheckpointError(f"{path}: learner.init_weights: {key} is {b!r} there but {a!r} in this run")
     try:
-        build_model(cfg).load_state_dict(ckpt.model_state)
+        with torch.random.fork_rng():  # the trial build leaves torch's global generator as it was
+            build_model(cfg).load_state_dict(ckpt.model_state)
     except RuntimeError as e:
         first = " ".join(str(e).split())[:200]
         raise CheckpointError(f"{path}: learner.init_weights: weights do not fit this run's network ({first})") from None
-    return ckpt.model_state
+    return ckpt

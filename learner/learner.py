@@ -186,7 +186,6 @@ class Learner:
         self.model.load_state_dict(weights)
         if self.average is not None:
             self.average.load_state_dict(weights)
-            self.average.clear_cache()
 
     def load_state_dict(self, state: dict) -> None:
         """Inverse of :meth:`state_dict`. Without a stored average (a run resumed with averaging

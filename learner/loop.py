@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
-from common.checkpoint import initial_weights, read_checkpoint, save_checkpoint
+from common.checkpoint import initial_weights, read_checkpoint, resolve_checkpoint, save_checkpoint
 from common.config import Config
 from common.policy import action_region
 from common.runtime import ray_init
@@ -76,6 +76,9 @@ class LearnerProcess:
         self.learner = Learner(cfg, self.replay, device=device, seed=seed)
         ckpt = checkpoint_path(self.run_dir)
         self.resumed_from = None
+        self.init_source: dict | None = None
+        """Where a fine-tuned run's first weights came from (learner.init_weights, resolved file,
+        its step and version); written into every checkpoint; None for a random start."""
         if ckpt.is_file():
             c = read_checkpoint(ckpt)
             ls = dict(c.extra["learner"])
@@ -86,10 +89,17 @@ class LearnerProcess:
                 "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
             })
             self.resumed_from = c.step
+            self.init_source = c.extra.get("init_weights")
         else:
-            weights = initial_weights(cfg)
-            if weights is not None:
-                self.learner.start_from(weights)
+            start = initial_weights(cfg)
+            if start is not None:
+                self.learner.start_from(start.model_state)
+                self.init_source = {
+                    "init_weights": cfg.learner.init_weights,
+                    "file": str(resolve_checkpoint(cfg.learner.init_weights).resolve()),
+                    "step": start.step,
+                    "version": start.version,
+                }
 
     def inserted(self) -> int:
         """Trials ever committed to the replay."""
@@ -148,15 +158,16 @@ class LearnerProcess:
             learner_state["trained_model"] = {k: v.detach().to("cpu", copy=True) for k, v in ls["model"].items()}
             learner_state["average_updates"] = ls["average_updates"]
         policy = self.learner.policy_model
+        origin = {} if self.init_source is None else {"init_weights": self.init_source}
         path = save_checkpoint(
             checkpoint_path(self.run_dir), policy, self.cfg,
             step=ls["steps"], version=ls["version"], epsilon=epsilon, optimizer=ls["optimizer"],
-            extra={"learner": learner_state, "replay": replay},
+            extra={"learner": learner_state, "replay": replay, **origin},
         )
         if snapshot and self.cfg.learner.keep_snapshots:
             save_checkpoint(
                 path.parent / f"step-{ls['steps']:07d}.pt", policy, self.cfg,
-                step=ls["steps"], version=ls["version"], epsilon=epsilon, extra={"replay": replay},
+                step=ls["steps"], version=ls["version"], epsilon=epsilon, extra={"replay": replay, **origin},
             )
         return str(path)
 

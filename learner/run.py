@@ -61,11 +61,15 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         cfg.run.max_trials = args.max_trials
     if args.max_minutes is not None:
         cfg.run.max_minutes = args.max_minutes
-    if not args.resume and cfg.learner.init_weights:
+    from learner.loop import checkpoint_path
+
+    if cfg.learner.init_weights and not checkpoint_path(run_dir).is_file():
+        # A run without a checkpoint of its own (new, or stopped before its first one) starts
+        # from init_weights: check it here, before anything starts, and make a path absolute,
+        # since Ray worker processes need not share the driver's working directory.
         if not cfg.learner.init_weights.startswith(SHIPPED_PREFIX):
-            # Ray worker processes need not share the driver's working directory.
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
-        initial_weights(cfg)  # a wrong learner.init_weights fails here, before anything starts
+        initial_weights(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, run_dir / "config.yaml")
     return cfg, run_dir

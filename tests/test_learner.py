@@ -245,6 +245,38 @@ def test_init_weights_of_another_network_fails_in_one_line(filled_replay, tmp_pa
     wider = load_config("tiny", overrides=SMALL + ["model.channels=4", f"learner.init_weights={path}"])
     with pytest.raises(CheckpointError, match="model.channels"):
         initial_weights(wider)
+    # Same tensors, other meaning: kernel-rotation features are not rotation-equivariant.
+    kernel = load_config("tiny", overrides=SMALL + ["model.rotate=kernel", f"learner.init_weights={path}"])
+    with pytest.raises(CheckpointError, match="model.rotate"):
+        initial_weights(kernel)
     missing = load_config("tiny", overrides=SMALL + [f"learner.init_weights={tmp_path / 'none.pt'}"])
     with pytest.raises(CheckpointError, match=r"learner.init_weights: .*none.pt: checkpoint file not found"):
         initial_weights(missing)
+
+
+def test_init_weights_path_is_made_absolute_and_checked_until_the_run_has_a_checkpoint(filled_replay, tmp_path, monkeypatch):
+    from common.checkpoint import CheckpointError, read_checkpoint
+    from learner.loop import LearnerProcess, checkpoint_path
+    from learner.run import parse_args, resolve
+
+    cfg, client = filled_replay
+    source = LearnerProcess(cfg, client._shards, str(tmp_path / "source"), seed=0, torch_threads=1)
+    source.checkpoint(epsilon=0.5, inserted=12)
+    monkeypatch.chdir(tmp_path)
+    sets = [f"--set={o}" for o in SMALL] + ["--set=learner.init_weights=source/checkpoints/latest.pt"]
+    fresh, run_dir = resolve(parse_args(["--config", "tiny", "--run-dir", "tuned", *sets]))
+    assert fresh.learner.init_weights == str(checkpoint_path(tmp_path / "source"))
+    assert load_config(run_dir / "config.yaml").learner.init_weights == fresh.learner.init_weights
+    tuned = LearnerProcess(fresh, client._shards, str(run_dir), seed=0, torch_threads=1)
+    tuned.checkpoint(epsilon=0.5, inserted=12)
+    origin = read_checkpoint(checkpoint_path(run_dir)).extra["init_weights"]
+    assert origin["file"] == fresh.learner.init_weights and origin["step"] == 0, origin
+    assert LearnerProcess(fresh, client._shards, str(run_dir), seed=0, torch_threads=1).init_source == origin
+    checkpoint_path(tmp_path / "source").unlink()
+    # The run has its own checkpoint now: --resume no longer needs (or reads) the source.
+    resumed, _ = resolve(parse_args(["--resume", "--run-dir", "tuned"]))
+    assert resumed.learner.init_weights == fresh.learner.init_weights
+    # A run stopped before its first checkpoint still starts from the source, so it is checked.
+    checkpoint_path(run_dir).unlink()
+    with pytest.raises(CheckpointError, match="checkpoint file not found"):
+        resolve(parse_args(["--resume", "--run-dir", "tuned"]))
