@@ -18,6 +18,7 @@ import torch
 
 from actors.grasp import run_episode
 from actors.simulation import Simulation
+from common import gripper_procedural
 from common.config import Config
 from common.gripper import GripperSpec, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
@@ -29,10 +30,16 @@ from common.policy import LearnedPolicy
 def split_grippers(cfg: Config) -> tuple[list[GripperSpec], list[GripperSpec]]:
     """Training grippers of ``grippers.train_grippers`` as (two-finger, multi-finger) lists.
 
-    ``train_grippers`` is a split name (``train``) or comma-separated gripper names.
+    ``train_grippers`` is a split name (``train``, ``test``), ``pool`` (the checked procedural pool of
+    assets/grippers/catalog.yaml) or comma-separated gripper names.
     """
     sel = cfg.grippers.train_grippers
-    specs = list_grippers(split=sel) if sel in ("train", "test") else [get_gripper(n.strip()) for n in sel.split(",")]
+    if sel in ("train", "test"):
+        specs = list_grippers(split=sel)
+    elif sel == "pool":
+        specs = [get_gripper(n) for n in gripper_procedural.catalog_names("pool")]
+    else:
+        specs = [get_gripper(n.strip()) for n in sel.split(",")]
     if not specs:
         raise ValueError(f"grippers.train_grippers: {sel!r} selects no gripper")
     two = [s for s in specs if s.family == "2-finger"]

@@ -4,7 +4,7 @@ Usage::
 
     python -m launcher grippers list [--json] [--split train|test] [--family 2-finger|3-finger|multi]
     python -m launcher grippers check NAME_OR_SPEC [--out DIR] [--json OUT] [--config default]
-    python -m launcher grippers generate --count 1000 [--start 0] [--json OUT] [--no-physics]
+    python -m launcher grippers generate --count 1000 [--start 0] [--json OUT] [--no-physics] [--pool-yaml OUT]
 
 ``check`` loads the gripper, moves it through openings 0..1 in PyBullet and reports the finger
 aperture at each (it must grow monotonically), checks that coupled joints follow their drivers in
@@ -15,7 +15,8 @@ pass/fail with reasons. Exit code 0 = pass, 1 = fail, 2 = the spec itself is bro
 naming the file and the field).
 
 ``generate`` builds ``count`` procedural grippers (families in turn, seeds from ``start``), runs
-the same check on each (without the PNGs) and reports the pass rate and every rejection reason.
+the same check on each (without the PNGs) and reports the pass rate and every rejection reason;
+``--pool-yaml`` writes the seeds that passed in the form of catalog.yaml's ``pool`` section.
 """
 
 from __future__ import annotations
@@ -271,7 +272,23 @@ def _cmd_generate(args) -> int:
     print(json.dumps(summary))
     if args.json:
         Path(args.json).write_text(json.dumps({"summary": summary, "grippers": results}, indent=1))
+    if args.pool_yaml:
+        Path(args.pool_yaml).write_text(_pool_yaml(results))
     return 0
+
+
+def _pool_yaml(results: list[dict]) -> str:
+    """The passed grippers of a ``generate`` run as catalog.yaml's ``pool`` section, seeds sorted."""
+    import yaml
+
+    from common.gripper_procedural import FAMILY_NAMES
+
+    seeds: dict[str, list[int]] = {f: [] for f in FAMILY_NAMES}
+    for r in results:
+        if r["passed"]:
+            seeds[r["family"]].append(int(r["name"].rsplit("-", 1)[1]))
+    pool = {f: sorted(v) for f, v in seeds.items() if v}
+    return yaml.safe_dump({"pool": pool}, default_flow_style=None, width=100, sort_keys=False)
 
 
 def cli(argv: list[str]) -> int:
@@ -293,5 +310,6 @@ def cli(argv: list[str]) -> int:
     p_gen.add_argument("--json", help="write the summary and every result here")
     p_gen.add_argument("--no-physics", action="store_true", help="kinematic checks only")
     p_gen.add_argument("--quiet", action="store_true", help="do not print rejections")
+    p_gen.add_argument("--pool-yaml", help="write the passed seeds here as catalog.yaml's pool section")
     args = ap.parse_args(argv)
     return {"list": _cmd_list, "check": _cmd_check, "generate": _cmd_generate}[args.cmd](args)

@@ -55,10 +55,24 @@ def family_ranges() -> dict:
     return yaml.safe_load((assets_dir() / "procedural" / "families.yaml").read_text())
 
 
-def catalog_names() -> list[str]:
-    """Procedural gripper names of the catalogue (assets/grippers/catalog.yaml), split train."""
-    data = yaml.safe_load((assets_dir() / "catalog.yaml").read_text())
-    return [f"{fam}-{seed}" for fam, seeds in data["train"].items() for seed in seeds]
+CATALOG_SECTIONS = ("train", "pool")
+"""Sections of assets/grippers/catalog.yaml: ``train``, the 32 grippers ``grippers list`` shows and
+training uses by default; ``pool``, every seed of 0-127 per family that passed
+``grippers generate``'s physics checks (``grippers.train_grippers=pool``)."""
+
+
+def catalog_names(section: str = "train") -> list[str]:
+    """Procedural gripper names of one section of the catalogue (assets/grippers/catalog.yaml)."""
+    if section not in CATALOG_SECTIONS:
+        raise ValueError(f"catalog section: expected one of {list(CATALOG_SECTIONS)}, got {section!r}")
+    path = assets_dir() / "catalog.yaml"
+    data = yaml.safe_load(path.read_text())
+    if section not in data:
+        raise ValueError(f"{path}: no section {section!r}")
+    for fam in data[section]:
+        if fam not in FAMILY_NAMES:
+            raise ValueError(f"{path}: {section}.{fam}: unknown procedural family (known: {', '.join(FAMILY_NAMES)})")
+    return [f"{fam}-{int(seed)}" for fam, seeds in data[section].items() for seed in seeds]
 
 
 def sample_params(family: str, seed: int) -> dict:

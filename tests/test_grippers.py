@@ -518,6 +518,46 @@ def test_cli_generate_reports_pass_rate(capsys):
     assert set(summary["per_family"]) == set(FAMILY_NAMES)
 
 
+def test_cli_generate_writes_the_passed_seeds_as_a_pool_section(tmp_path, capsys):
+    from actors.gripper_cli import cli
+
+    out, pool = tmp_path / "gen.json", tmp_path / "pool.yaml"
+    assert cli(["generate", "--count", "8", "--start", "4", "--no-physics", "--quiet",
+                "--json", str(out), "--pool-yaml", str(pool)]) == 0
+    results = json.loads(out.read_text())["grippers"]
+    passed = {r["name"] for r in results if r["passed"]}
+    section = yaml.safe_load(pool.read_text())["pool"]
+    assert {f"{fam}-{seed}" for fam, seeds in section.items() for seed in seeds} == passed
+    assert all(seeds == sorted(seeds) for seeds in section.values())
+    assert {r["name"] for r in results} == {f"{f}-{s}" for f in FAMILY_NAMES for s in (1, 2)}
+
+
+def test_pool_catalogue_holds_the_training_catalogue_and_valid_names():
+    from common.gripper_procedural import catalog_names
+
+    pool, train = catalog_names("pool"), catalog_names("train")
+    assert len(pool) == len(set(pool)) and len(pool) > 4 * len(train)
+    assert set(train) <= set(pool)
+    families = {n.rsplit("-", 1)[0] for n in pool}
+    assert families == set(FAMILY_NAMES)
+    assert all(0 <= int(n.rsplit("-", 1)[1]) < 128 for n in pool)
+    spec = get_gripper(pool[-1])
+    assert spec.split == "train" and spec.name == pool[-1]
+    with pytest.raises(ValueError, match="catalog section"):
+        catalog_names("test")
+
+
+def test_train_grippers_pool_selects_every_pool_gripper():
+    from actors.grasp_actor import split_grippers
+    from common.config import load_config
+    from common.gripper_procedural import catalog_names
+
+    two, multi = split_grippers(load_config("default", ["grippers.train_grippers=pool"]))
+    assert {s.name for s in two + multi} == set(catalog_names("pool"))
+    assert all(s.family == "2-finger" for s in two) and all(s.family != "2-finger" for s in multi)
+    assert all(s.split == "train" for s in two + multi) and len(two) > 32 and len(multi) > 32
+
+
 @pytest.mark.slow
 def test_parallel_jaw_lifts_across_scales_and_seeds():
     spec = get_gripper("parallel_jaw-0")
