@@ -172,8 +172,8 @@ class GripperConfig:
     """Which grippers actors train with and how they are sampled."""
 
     train_grippers: str = "train"
-    """Training grippers: train (the 32-gripper catalogue) | pool (512 checked procedural seeds) |
-    comma-separated names."""
+    """Training grippers: train (the 32-gripper catalogue) | pool (the 511 procedural grippers of
+    assets/grippers/catalog.yaml that passed their physics checks) | comma-separated names."""
     scale_range: tuple[float, float] = (0.8, 1.2)
     """Global gripper scale sampled uniformly per training episode."""
     train_openings: int = 5
