@@ -30,6 +30,11 @@ Protocol (docs/EVALUATION.md has the whole text):
   need none. Candidate openings: ``grippers.eval_openings``. The evaluation config (``--config``,
   ``--set``) fixes the simulation for every policy; a checkpoint brings its network and weights,
   and its grids and rotations must match that config.
+- ``--calibration RESULT.json`` (``adagrasp`` only): before comparing grippers, each gripper's
+  scores are mapped through a logit shift fitted to its trials in RESULT.json, a ``fix-gripper``
+  evaluation of the same checkpoint on other scenes (``common.calibration``); the result records
+  the shifts, its rows read ``adagrasp (calibrated)``, and each attempt's ``score`` is the
+  calibrated one.
 - Every gripper of ``--grippers`` runs the same N episodes (except ``adagrasp``, which runs N
   episodes and picks among them); the headline rate is the mean of the per-gripper rates
   (``adagrasp``: its successes / attempts).
@@ -64,7 +69,8 @@ from actors.objects import ObjectSetError, object_names
 from actors.policies import make_policy
 from actors.rollout import episode_seed
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
-from common.checkpoint import inference_config, read_checkpoint
+from common.calibration import Calibration, calibration_from_result
+from common.checkpoint import CheckpointError, inference_config, read_checkpoint, resolve_checkpoint
 from common.config import Config, load_config, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, get_gripper, list_grippers
@@ -87,6 +93,10 @@ SCRIPTED = ("random", "heuristic")
 """Reference policies that need no checkpoint."""
 POLICIES = (*LEARNED, *SCRIPTED)
 """Every ``--policy``, in the row order of the paper's table (reference rows last)."""
+CALIBRATED = "adagrasp (calibrated)"
+"""Table row of ``adagrasp`` results run with ``--calibration`` (after the ``adagrasp`` row)."""
+ROWS = (*LEARNED, CALIBRATED, *SCRIPTED)
+"""Row labels of the table, in order."""
 POLICY_STREAM = 1
 """Third entropy word of the policy generator (:func:`policy_seed`)."""
 CELL_ORDER = ("O_tr/G_tr", "O_tr/G_te", "O_te/G_tr", "O_te/G_te")
@@ -159,6 +169,8 @@ class EvalPlan:
     """Per gripper (S, 2, gX, gY, gZ) float32 encodings at ``scale`` and ``openings`` (learned policies)."""
     device: str = "cpu"
     """Torch device of the network in every worker: cpu | cuda."""
+    calibration: Calibration | None = None
+    """Per-gripper score calibration of the ``adagrasp`` policy (``--calibration``), or None."""
 
     def units(self) -> list[Unit]:
         """Every episode of the cell: gripper-major for per-gripper policies, episode order for adagrasp."""
@@ -224,6 +236,10 @@ def make_plan(args) -> EvalPlan:
         seed=int(args.seed),
         device=args.device,
     )
+    if args.calibration is not None and args.policy != "adagrasp":
+        raise EvaluationError(
+            f"--calibration: only --policy adagrasp compares grippers; {args.policy} would choose the same grasps"
+        )
     if args.policy in SCRIPTED:
         if args.checkpoint is not None:
             raise EvaluationError(f"--checkpoint: the {args.policy} policy takes no checkpoint")
@@ -241,12 +257,45 @@ def make_plan(args) -> EvalPlan:
             f"this one is {ckpt.variant} (use --policy {hint})"
         )
     LearnedPolicy.from_checkpoint(args.checkpoint, cfg, mode=mode)  # grid and rotation checks, one line
+    if args.calibration is not None:
+        plan.calibration = _calibration(args, plan, ckpt.version)
     encoder = GripperEncoder(cfg.gripper_grid)
     plan.encodings = [encoder.encode(spec, plan.scale, openings) for _, spec in grippers]
     plan.model_cfg = inference_config(ckpt.cfg)
     plan.model_state = ckpt.model_state
     plan.model_version = ckpt.version
     return plan
+
+
+def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
+    """The calibration of ``--calibration``, checked against this evaluation; one-line errors."""
+    path = args.calibration
+    data = read_result(path)
+    fitted_on = data.get("checkpoint")
+    try:
+        same = fitted_on is not None and resolve_checkpoint(fitted_on).resolve() == resolve_checkpoint(args.checkpoint).resolve()
+    except CheckpointError as e:
+        raise EvaluationError(f"{path}: checkpoint: {e}") from None
+    if not same:
+        raise EvaluationError(f"{path}: checkpoint: fitted with {fitted_on!r}, this evaluation uses {args.checkpoint!r}")
+    if data.get("checkpoint_version") != version:
+        raise EvaluationError(
+            f"{path}: checkpoint_version: fitted with weights v{data.get('checkpoint_version')}, the checkpoint holds v{version}"
+        )
+    if [float(o) for o in data.get("openings", [])] != list(plan.openings):
+        raise EvaluationError(f"{path}: openings: fitted with {data.get('openings')}, this evaluation uses {list(plan.openings)}")
+    if float(data.get("scale", 1.0)) != plan.scale:
+        raise EvaluationError(f"{path}: scale: fitted with {data.get('scale')}, this evaluation uses {plan.scale}")
+    if data["scene"] == plan.scene and data.get("objects") == plan.objects:
+        shared = set(data.get("scene_seeds", [])) & {episode_seed(plan.seed, e) for e in range(plan.episodes)}
+        if shared:
+            raise EvaluationError(
+                f"{path}: scene_seeds: the calibration trials share {len(shared)} scenes with this evaluation "
+                "(fit it on other objects or another --seed)"
+            )
+    cal = calibration_from_result(str(path), data)
+    cal.shifts(plan.gripper_names)  # every evaluated gripper has trials
+    return cal
 
 
 # --------------------------------------------------------------------------------------
@@ -288,7 +337,12 @@ class EvalWorker:
                     (gripper_key(plan.gripper_names[n], plan.scale, plan.openings), plan.encodings[n]) for n in indices
                 ]
                 mode = LEARNED[plan.policy][1]
-                self._policies[g] = LearnedPolicy(self.model, plan.cfg, grippers, mode=mode, epsilon=0.0)
+                shifts = None
+                if plan.calibration is not None:
+                    shifts = plan.calibration.shifts([plan.gripper_names[n] for n in indices])
+                self._policies[g] = LearnedPolicy(
+                    self.model, plan.cfg, grippers, mode=mode, epsilon=0.0, score_shifts=shifts
+                )
         return self._policies[g]
 
     def run(self, unit: Unit) -> dict:
@@ -501,6 +555,11 @@ def summarise(plan: EvalPlan, results: list[dict], argv: list[str], grippers: st
     }
 
 
+def row_label(summary: dict) -> str:
+    """Table row of a result: its policy, or :data:`CALIBRATED` for a calibrated ``adagrasp`` run."""
+    return CALIBRATED if summary["policy"] == "adagrasp" and summary.get("calibration") else summary["policy"]
+
+
 def _cell(summary: dict) -> str:
     return f"{summary['objects_label']}/{summary['grippers_label']}"
 
@@ -528,14 +587,14 @@ def table_markdown(results: list[tuple[str, dict]]) -> str:
     with_cameras = len({s["cameras"] for _, s in results}) > 1
     cells: dict[tuple[str, tuple], tuple[str, dict]] = {}
     for path, s in results:
-        key = (s["policy"], _column_key(s, with_cameras))
+        key = (row_label(s), _column_key(s, with_cameras))
         if key in cells:
             raise EvaluationError(
-                f"{path}: policy {s['policy']}, {_column_title(key[1])}: the same cell is already in {cells[key][0]}"
+                f"{path}: policy {key[0]}, {_column_title(key[1])}: the same cell is already in {cells[key][0]}"
             )
         cells[key] = (path, s)
     columns = sorted({k for _, k in cells})
-    rows = [p for p in POLICIES if any(pol == p for pol, _ in cells)]
+    rows = [p for p in ROWS if any(pol == p for pol, _ in cells)]
     lines = ["| policy | " + " | ".join(_column_title(c) for c in columns) + " |"]
     lines.append("|---|" + "---:|" * len(columns))
     for p in rows:
@@ -552,7 +611,7 @@ def table_markdown(results: list[tuple[str, dict]]) -> str:
     ]
     for path, s in results:
         lines.append(
-            f"| {path} | {s['policy']} | {s['scene']} | {s['objects']} | {s['grippers']} | {s['cameras']} | "
+            f"| {path} | {row_label(s)} | {s['scene']} | {s['objects']} | {s['grippers']} | {s['cameras']} | "
             f"{s['episodes']} | {s['average']['attempts']} | {s['average']['successes']} | {s['seed']} | "
             f"{s.get('checkpoint') or '–'} |"
         )
@@ -636,6 +695,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--scale", type=float, default=1.0, help="global gripper scale")
     ap.add_argument("--config", default="default", help="evaluation config: default | paper | YAML path")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override, repeatable")
+    ap.add_argument("--calibration", default=None, metavar="RESULT.json",
+                    help="adagrasp: calibrate each gripper's scores with its trials in this fix-gripper result")
     ap.add_argument("--json", default=None, help="write every number here")
     ap.add_argument("--md", default=None, help="write the Markdown table here")
     ap.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -661,6 +722,7 @@ def evaluate(argv: list[str]) -> dict:
         "checkpoint": args.checkpoint,
         "checkpoint_variant": plan.model_cfg.model.variant if plan.model_cfg is not None else None,
         "checkpoint_version": plan.model_version if plan.model_cfg is not None else None,
+        "calibration": plan.calibration.to_dict() if plan.calibration is not None else None,
         "actors": args.actors,
         "wall_s": time.perf_counter() - t0,
     }
@@ -696,7 +758,7 @@ def cli(argv: list[str]) -> int:
         f"{n} {v['successes']}/{v['attempts']}" for n, v in summary["per_gripper"].items() if v["attempts"]
     )
     print(
-        f"evaluate: {summary['policy']} on {summary['scene']} {summary['objects_label']}/{summary['grippers_label']} "
+        f"evaluate: {row_label(summary)} on {summary['scene']} {summary['objects_label']}/{summary['grippers_label']} "
         f"({summary['cameras']} camera(s), {summary['episodes']} episodes, seed {summary['seed']}): "
         f"rate {_fmt(summary['rate'])} ({summary['average']['successes']}/{summary['average']['attempts']} grasps); "
         f"{per}; {summary['wall_s']:.1f} s"

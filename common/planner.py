@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common.calibration import Calibration, CalibrationError
 from common.camera import Intrinsics
 from common.config import Config
 from common.geometry import Transform
@@ -93,7 +94,7 @@ class GraspPlanner:
         self.last_observation: Observation | None = None
         """The fused observation of the last :meth:`plan` call."""
         self.last_probs: np.ndarray | None = None
-        """(G, S, R, X, Y) float32 scores of the last :meth:`plan` call."""
+        """(G, S, R, X, Y) float32 scores of the last :meth:`plan` call (calibrated if it was given one)."""
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu") -> "GraspPlanner":
@@ -158,6 +159,7 @@ class GraspPlanner:
         obstacle_masks=None,
         top_k: int = 10,
         min_separation: float = 0.0,
+        calibration: Calibration | None = None,
     ) -> list[PlannedGrasp]:
         """Ranked grasps, best first.
 
@@ -166,7 +168,9 @@ class GraspPlanner:
         spec paths, ``GripperSpec`` or (gripper, scale) pairs; openings: candidate initial openings
         in [0, 1] (default ``grippers.eval_openings``); obstacle_masks: per camera (H, W) bool, True
         on objects not to be lifted. ``min_separation`` (m): skip grasps whose TCP lies closer
-        than this to a better one already kept (0 keeps neighbouring cells).
+        than this to a better one already kept (0 keeps neighbouring cells). ``calibration``
+        (``common.calibration``): map each gripper's scores through its fitted logit shift before
+        ranking across grippers; it must cover every gripper.
         """
         if int(top_k) < 1:
             raise PlannerError(f"top_k: expected a positive integer, got {top_k!r}")
@@ -179,6 +183,11 @@ class GraspPlanner:
         keys = [gripper_key(spec.name, scale, openings) for spec, scale in specs]
         scene = torch.from_numpy(np.stack([obs.tsdf, obs.obstacle]))
         probs = self.model.predict(scene, [torch.from_numpy(e) for e in encodings], keys).cpu().numpy()
+        if calibration is not None:
+            try:
+                probs = calibration.apply(probs, [spec.name for spec, _ in specs])
+            except CalibrationError as e:
+                raise PlannerError(f"calibration: {e}") from None
         self.last_observation, self.last_probs = obs, probs
         mask = valid_cells(obs, self.cfg)
         masked = np.where(mask, probs, -1.0).ravel()

@@ -9,6 +9,9 @@ network and picks one action ``(i, j, k, s, g)``: scene cell (i along x, j along
 - ``fix-gripper``: one gripper; the best opening, rotation and cell;
 - ``adagrasp``: several grippers; the best gripper, opening, rotation and cell.
 
+With ``score_shifts`` (``common.calibration``) each gripper's scores are calibrated before the
+choice; within one gripper the order of its grasps does not change.
+
 Valid actions (the paper's mask): cells inside the square of half-size ``sim.action_half_extent``
 around the grid centre that some camera observed (``obs.valid``), at every rotation and opening;
 with ``model.min_surface_height`` > 0 only cells higher than that count. If no cell passes, the
@@ -35,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common.calibration import apply_shifts
 from common.config import Config
 from common.geometry import cell_to_world, rotation_angle
 from common.network import AdaGraspNet
@@ -127,9 +131,12 @@ class LearnedPolicy:
         grippers: list[tuple[str, np.ndarray]] | None = None,
         mode: str = "fix-gripper",
         epsilon: float = 0.0,
+        score_shifts: np.ndarray | None = None,
     ) -> None:
         """``grippers``: (key, encoding (S, 2, gX, gY, gZ) float32) per candidate gripper, S =
-        len(openings) passed to ``act``; may be set later with :meth:`set_grippers`."""
+        len(openings) passed to ``act``; may be set later with :meth:`set_grippers`.
+        ``score_shifts``: (G,) float logits added to each gripper's score logits before choosing
+        (``common.calibration``; None: the network's scores as they are)."""
         if mode not in MODES:
             raise PolicyError(f"mode: expected one of {list(MODES)}, got {mode!r}")
         if not 0.0 <= epsilon <= 1.0:
@@ -143,7 +150,10 @@ class LearnedPolicy:
         self.grippers: list[tuple[str, np.ndarray]] = []
         self.last_choice: GraspChoice | None = None
         self.last_probs: np.ndarray | None = None
-        """(G, S, R, X, Y) float32 scores of the last call (only the drawn opening for fix-config)."""
+        """(G, S, R, X, Y) float32 scores of the last call (only the drawn opening for fix-config),
+        calibrated when ``score_shifts`` is set."""
+        self.score_shifts = None if score_shifts is None else np.asarray(score_shifts, dtype=np.float64)
+        """(G,) float64 logit shift per gripper, or None."""
         if grippers is not None:
             self.set_grippers(grippers)
 
@@ -181,16 +191,27 @@ class LearnedPolicy:
         if self.mode == "fix-config":
             s_fixed = int(rng.integers(len(openings)))
             probs = self.scores(obs, openings, s_only=s_fixed)
+            if self.score_shifts is not None:
+                probs = self._calibrated(probs)
             (g, _, k, i, j), score, explored = select(probs, mask, self.epsilon, rng)
             s = s_fixed
         else:
             probs = self.scores(obs, openings)
+            if self.score_shifts is not None:
+                probs = self._calibrated(probs)
             (g, s, k, i, j), score, explored = select(probs, mask, self.epsilon, rng)
         self.last_probs = probs
         position, yaw = grasp_pose(self.cfg, obs.heightmap, i, j, k)
         choice = GraspChoice((i, j, k, s, g), position, yaw, float(openings[s]), score, explored)
         self.last_choice = choice
         return choice
+
+    def _calibrated(self, probs: np.ndarray) -> np.ndarray:
+        if self.score_shifts.shape != (len(self.grippers),):
+            raise PolicyError(
+                f"score_shifts: expected one per gripper ({len(self.grippers)}), got shape {self.score_shifts.shape}"
+            )
+        return apply_shifts(probs, self.score_shifts)
 
     def act(self, obs: Observation, openings: tuple[float, ...], rng: np.random.Generator):
         """``actors.policies.Policy``: ((i, j, k, s), score); the gripper index is in ``last_choice``."""
@@ -206,6 +227,7 @@ class LearnedPolicy:
         mode: str = "fix-gripper",
         epsilon: float = 0.0,
         device: str = "cpu",
+        score_shifts: np.ndarray | None = None,
     ) -> "LearnedPolicy":
         """A policy running the model of checkpoint ``path``. With ``cfg`` given (the run's), its
         grids must match the checkpoint's; the policy uses ``cfg`` for the action square and poses."""
@@ -220,4 +242,4 @@ class LearnedPolicy:
                 raise PolicyError(f"{path}: {section}: the checkpoint's grid {theirs} differs from the run's {mine}")
         if cfg.model.rotations != ckpt.cfg.model.rotations:
             raise PolicyError(f"{path}: model.rotations: checkpoint {ckpt.cfg.model.rotations}, run {cfg.model.rotations}")
-        return cls(model, cfg, grippers, mode=mode, epsilon=epsilon)
+        return cls(model, cfg, grippers, mode=mode, epsilon=epsilon, score_shifts=score_shifts)

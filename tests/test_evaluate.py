@@ -387,3 +387,96 @@ def test_cuda_without_a_device_is_one_line(small, tmp_path, capsys):
     rc, result, _ = run_cli([*learned_argv(small, "fix-gripper", "adagrasp", GRIPPER), "--device", "cuda"], tmp_path)
     err = capsys.readouterr().err.strip()
     assert rc == 2 and result is None and "\n" not in err and "--device cuda" in err
+
+
+# ---------------------------------------------------------------- calibration
+
+
+@pytest.fixture(scope="module")
+def calibration_run(small, tmp_path_factory):
+    """fix-gripper trials of both grippers on the scenes of seed 5 (the evaluations below use seed 0)."""
+    root = tmp_path_factory.mktemp("calibration")
+    rc, result, path = run_cli(
+        [*learned_argv(small, "fix-gripper", "adagrasp", f"{GRIPPER},{OTHER}"), "--seed", "5"], root, "cal"
+    )
+    assert rc == 0
+    return result, path
+
+
+def edited(result, tmp_path, name, winner=None, **fields):
+    """A copy of a calibration result; with ``winner``, every trial of that gripper succeeds and every
+    other fails."""
+    data = json.loads(json.dumps({**result, **fields}))
+    if winner is not None:
+        for r in data["episode_results"]:
+            for t in r["trials"]:
+                t["success"] = t["gripper"] == winner
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+@pytest.mark.parametrize("winner", [GRIPPER, OTHER])
+def test_calibrated_adagrasp_chooses_the_reliable_gripper(small, calibration_run, tmp_path, winner):
+    """An untrained model scores both grippers alike; a calibration in which only ``winner`` ever
+    lifted makes adagrasp choose it on every attempt, and the result records the fit."""
+    cal_result, _ = calibration_run
+    cal = edited(cal_result, tmp_path, f"cal-{winner}", winner=winner)
+    argv = [*learned_argv(small, "adagrasp", "adagrasp", f"{GRIPPER},{OTHER}", episodes=3), "--calibration", str(cal)]
+    rc, result, path = run_cli(argv, tmp_path)
+    assert rc == 0
+    trials = [t for r in result["episode_results"] for t in r["trials"]]
+    assert len(trials) == 3 and all(t["gripper"] == t["executed"] == winner for t in trials)
+    fit = result["calibration"]
+    assert fit["source"] == str(cal) and set(fit["grippers"]) == {GRIPPER, OTHER}
+    loser = OTHER if winner == GRIPPER else GRIPPER
+    assert fit["grippers"][winner]["successes"] == 2 and fit["grippers"][loser]["successes"] == 0
+    assert fit["grippers"][winner]["shift"] > 0 > fit["grippers"][loser]["shift"]
+    assert ev.row_label(result) == ev.CALIBRATED
+    plain = relabel(result, tmp_path, "plain", calibration=None)
+    md = tmp_path / "both.md"
+    assert ev.cli(["table", str(path), str(plain), "--md", str(md)]) == 0
+    rows = [line.split(" | ")[0].lstrip("| ") for line in md.read_text().splitlines()[2:4]]
+    assert rows == ["adagrasp", ev.CALIBRATED]
+
+
+@pytest.mark.parametrize(
+    "change, extra, needle",
+    [
+        ({}, ["--policy", "fix-gripper"], "--calibration: only --policy adagrasp compares grippers"),
+        ({"policy": "adagrasp"}, [], "policy: a calibration is fitted to fix-gripper trials"),
+        ({}, ["--seed", "5"], "scene_seeds: the calibration trials share 2 scenes with this evaluation"),
+        ({"checkpoint_version": 8}, [], "checkpoint_version: fitted with weights v8, the checkpoint holds v7"),
+        ({"checkpoint": "elsewhere.pt"}, [], "checkpoint: fitted with 'elsewhere.pt'"),
+        ({"checkpoint": "model:no_such_model"}, [], "checkpoint: model:no_such_model: no shipped model"),
+        ({"openings": [0.5, 1.0]}, [], "openings: fitted with [0.5, 1.0]"),
+        ({"drop": OTHER}, [], f"per_gripper: no trials of gripper {OTHER}"),
+        ({"format": "other"}, [], "format: expected"),
+    ],
+)
+def test_bad_calibration_is_one_line(small, calibration_run, tmp_path, capsys, change, extra, needle):
+    cal_result, _ = calibration_run
+    change = dict(change)
+    drop = change.pop("drop", None)
+    data = {**cal_result, **change}
+    if drop is not None:
+        data["episode_results"] = [r for r in data["episode_results"] if r["gripper"] != drop]
+    cal = edited(data, tmp_path, "bad-cal")
+    flags = dict(zip(extra[::2], extra[1::2]))
+    argv = learned_argv(small, flags.pop("--policy", "adagrasp"), "adagrasp", f"{GRIPPER},{OTHER}")
+    argv += ["--calibration", str(cal), *[x for kv in flags.items() for x in kv]]
+    rc, result, out = run_cli(argv, tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and not out.exists()
+    assert err.startswith("evaluate: error: ") and "\n" not in err and needle in err
+    if "--calibration:" not in needle:
+        assert str(cal) in err
+
+
+def test_unreadable_calibration_is_one_line(small, tmp_path, capsys):
+    cal = tmp_path / "cal.json"
+    cal.write_text("{broken")
+    argv = [*learned_argv(small, "adagrasp", "adagrasp", GRIPPER), "--calibration", str(cal)]
+    rc, result, _ = run_cli(argv, tmp_path)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and "\n" not in err and f"{cal}: not valid JSON" in err

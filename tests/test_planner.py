@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from common.calibration import Calibration, GripperFit
 from common.camera import top_down_camera
 from common.checkpoint import save_checkpoint
 from common.config import load_config
@@ -143,3 +144,22 @@ def test_planned_grasp_executes_in_the_simulator(tmp_path):
     assert outcome.steps > 0
     assert planner.encoder.encode(spec, 1.0, openings).shape == (1, 2, 32, 32, 16)
     assert gripper_key(spec.name, 1.0, openings) in {k for k, *_ in planner.model._kernels}
+
+
+def test_planner_ranks_with_a_calibration():
+    cfg = load_config("default", SMALL)
+    planner = planner_for(cfg)
+    K, T, depth = box_depth(cfg)
+    grippers = [GRIPPER, "three_finger-1"]
+    raw = planner.plan([depth], [K], [T], grippers, openings=(0.5, 1.0), top_k=1)[0]
+    raw_probs = planner.last_probs
+    fits = {name: GripperFit(-30.0 if g == raw.gripper else 0.0, 10, 5, 0.5) for g, name in enumerate(grippers)}
+    cal = Calibration(fits, 2.0, "cal.json")
+    best = planner.plan([depth], [K], [T], grippers, openings=(0.5, 1.0), top_k=1, calibration=cal)[0]
+    assert best.gripper == 1 - raw.gripper
+    mask = valid_cells(planner.last_observation, cfg)
+    other = np.where(mask, raw_probs[best.gripper], -1.0)
+    s, k, i, j = (int(v) for v in np.unravel_index(np.argmax(other), other.shape))
+    assert best.action == (i, j, k, s, best.gripper)
+    with pytest.raises(PlannerError, match="calibration: cal.json: per_gripper: no trials of gripper wsg_50"):
+        planner.plan([depth], [K], [T], [GRIPPER, "wsg_50"], openings=(0.5, 1.0), calibration=cal)

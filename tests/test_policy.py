@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from actors.policies import Policy, make_policy
+from common.calibration import apply_shifts
 from common.checkpoint import save_checkpoint
 from common.config import load_config
 from common.geometry import cell_to_world
@@ -184,3 +185,28 @@ def test_pictures(tmp_path):
     # the footprint is drawn: the picture changes with the encoding
     empty = np.ones_like(enc[0])
     assert np.abs(grasp_image(obs.heightmap, cfg, choice, empty, title="test").astype(int) - g_img).sum() > 0
+
+
+def test_policy_chooses_across_grippers_with_the_calibrated_scores():
+    """A shift against the raw winner hands the choice to the other gripper, at that gripper's own
+    best grasp; the reported score is the calibrated one."""
+    cfg, model = small()
+    obs = observation(cfg)
+    openings = (0.5, 1.0)
+    grippers = [("a", gripper(cfg, 2, 1)), ("b", gripper(cfg, 2, 2))]
+    raw = LearnedPolicy(model, cfg, grippers, mode="adagrasp")
+    first = raw.choose(obs, openings, np.random.default_rng(0))
+    winner, loser = first.action[4], 1 - first.action[4]
+    shifts = np.zeros(2)
+    shifts[winner] = -30.0
+    policy = LearnedPolicy(model, cfg, grippers, mode="adagrasp", score_shifts=shifts)
+    choice = policy.choose(obs, openings, np.random.default_rng(0))
+    assert choice.action[4] == loser
+    alone = LearnedPolicy(model, cfg, [grippers[loser]], mode="fix-gripper").choose(obs, openings, np.random.default_rng(0))
+    assert choice.action[:4] == alone.action[:4]
+    assert choice.score == pytest.approx(alone.score, rel=1e-5)  # zero shift for the loser
+    np.testing.assert_allclose(policy.last_probs, apply_shifts(raw.last_probs, shifts), atol=1e-7)
+    with pytest.raises(PolicyError, match="score_shifts: expected one per gripper"):
+        LearnedPolicy(model, cfg, grippers, mode="adagrasp", score_shifts=np.zeros(3)).choose(
+            obs, openings, np.random.default_rng(0)
+        )
