@@ -30,8 +30,9 @@ PRIOR_SIGMA = 2.0
 """Standard deviation (logits) of the zero-mean Gaussian prior on each gripper's shift: weak enough
 that 40 trials move a shift by several logits, strong enough that a gripper which never failed
 (or never succeeded) gets a finite shift."""
-PROB_CLIP = 1e-6
-"""Probabilities are clipped to [PROB_CLIP, 1 - PROB_CLIP] before the logit."""
+PROB_CLIP = 1e-12
+"""Probabilities are clipped to [PROB_CLIP, 1 - PROB_CLIP] before the logit: below the spacing of
+float32 scores near 1 (6e-8), so distinct network scores keep distinct logits."""
 
 
 class CalibrationError(ValueError):
@@ -109,7 +110,7 @@ class Calibration:
         return np.array([self.grippers[n].shift for n in names], dtype=np.float64)
 
     def apply(self, probs: np.ndarray, names: list[str]) -> np.ndarray:
-        """``probs`` (G, ...) float success probabilities of grippers ``names`` -> calibrated, float32."""
+        """``probs`` (G, ...) float success probabilities of grippers ``names`` -> calibrated, float64."""
         return apply_shifts(probs, self.shifts(names))
 
     def to_dict(self) -> dict:
@@ -126,13 +127,14 @@ class Calibration:
 
 def apply_shifts(probs: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """sigmoid(logit(probs[g]) + shifts[g]) for ``probs`` (G, ...) float and ``shifts`` (G,) logits;
-    float32, the shape of ``probs``."""
+    float64 (float32 would round scores near 1 together and break the order within a gripper),
+    the shape of ``probs``."""
     probs = np.asarray(probs)
     shifts = np.asarray(shifts, dtype=np.float64)
     if probs.ndim < 1 or shifts.shape != (probs.shape[0],):
         raise CalibrationError(f"shifts: expected one per gripper ({probs.shape[:1]}), got shape {shifts.shape}")
     expand = shifts.reshape((-1,) + (1,) * (probs.ndim - 1))
-    return sigmoid(logit(probs) + expand).astype(np.float32)
+    return sigmoid(logit(probs) + expand)
 
 
 def fit_calibration(trials: dict[str, list[tuple[float, bool]]], source: str,

@@ -94,7 +94,8 @@ class GraspPlanner:
         self.last_observation: Observation | None = None
         """The fused observation of the last :meth:`plan` call."""
         self.last_probs: np.ndarray | None = None
-        """(G, S, R, X, Y) float32 scores of the last :meth:`plan` call (calibrated if it was given one)."""
+        """(G, S, R, X, Y) float32 scores of the last :meth:`plan` call (float64 and calibrated if it
+        was given a calibration)."""
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu") -> "GraspPlanner":
@@ -169,8 +170,9 @@ class GraspPlanner:
         in [0, 1] (default ``grippers.eval_openings``); obstacle_masks: per camera (H, W) bool, True
         on objects not to be lifted. ``min_separation`` (m): skip grasps whose TCP lies closer
         than this to a better one already kept (0 keeps neighbouring cells). ``calibration``
-        (``common.calibration``): map each gripper's scores through its fitted logit shift before
-        ranking across grippers; it must cover every gripper.
+        (``common.calibration``): map each gripper's scores through the logit shift fitted for its
+        name (whatever its scale here) before ranking across grippers; it must cover every gripper
+        and come from this planner's checkpoint (not checked here; ``evaluate --calibration`` does).
         """
         if int(top_k) < 1:
             raise PlannerError(f"top_k: expected a positive integer, got {top_k!r}")

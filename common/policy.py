@@ -150,8 +150,8 @@ class LearnedPolicy:
         self.grippers: list[tuple[str, np.ndarray]] = []
         self.last_choice: GraspChoice | None = None
         self.last_probs: np.ndarray | None = None
-        """(G, S, R, X, Y) float32 scores of the last call (only the drawn opening for fix-config),
-        calibrated when ``score_shifts`` is set."""
+        """(G, S, R, X, Y) float32 scores of the last call (only the drawn opening for fix-config);
+        float64 and calibrated when ``score_shifts`` is set."""
         self.score_shifts = None if score_shifts is None else np.asarray(score_shifts, dtype=np.float64)
         """(G,) float64 logit shift per gripper, or None."""
         if grippers is not None:

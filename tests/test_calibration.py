@@ -54,11 +54,13 @@ def test_fit_edge_cases():
 def test_shifts_keep_each_grippers_order_and_change_the_comparison():
     rng = np.random.default_rng(2)
     probs = rng.uniform(0.05, 0.95, size=(2, 3, 4, 5, 5)).astype(np.float32)
-    probs[0, 1, 2, 3, 3] = 0.99  # gripper 0 holds the best raw score
+    probs[0, 1, 2, 3, 3] = 0.9999999  # gripper 0 holds the best raw score ...
+    probs[0, 0, 0, 0, 0] = 0.9999995  # ... and the next, apart from it only in float32's last bits
     same = apply_shifts(probs, np.zeros(2))
-    np.testing.assert_allclose(same, probs, atol=1e-6)
-    shifted = apply_shifts(probs, np.array([-4.0, 0.5]))
-    assert shifted.shape == probs.shape and shifted.dtype == np.float32
+    np.testing.assert_allclose(same, probs, rtol=1e-6)
+    shifted = apply_shifts(probs, np.array([-15.0, 0.5]))
+    assert shifted.shape == probs.shape and shifted.dtype == np.float64
+    assert shifted[0, 0, 0, 0, 0] < shifted[0, 1, 2, 3, 3] < 0.9
     for g in range(2):
         assert np.array_equal(np.argsort(probs[g].ravel(), kind="stable"), np.argsort(shifted[g].ravel(), kind="stable"))
     assert np.unravel_index(np.argmax(probs), probs.shape)[0] == 0
