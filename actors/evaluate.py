@@ -52,13 +52,14 @@ Bad input ends with one line on stderr and exit status 2; nothing is written the
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shlex
 import sys
 import time
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -267,13 +268,31 @@ def make_plan(args) -> EvalPlan:
     return plan
 
 
+CALIBRATION_FREE = ("sim.scene", "sim.objects")
+"""Config keys in which a calibration's evaluation may differ from the evaluation it serves."""
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
-    """The calibration of ``--calibration``, checked against this evaluation; one-line errors."""
+    """The calibration of ``--calibration``, checked against this evaluation: the same checkpoint
+    file and weights version, openings, scale and config (but scene kind and object set), every
+    gripper, no shared scene; one-line errors naming the file and the key."""
     path = args.calibration
     data = read_result(path)
     fitted_on = data.get("checkpoint")
     try:
-        same = fitted_on is not None and resolve_checkpoint(fitted_on).resolve() == resolve_checkpoint(args.checkpoint).resolve()
+        same = isinstance(fitted_on, str) and (
+            resolve_checkpoint(fitted_on).resolve() == resolve_checkpoint(args.checkpoint).resolve()
+        )
     except CheckpointError as e:
         raise EvaluationError(f"{path}: checkpoint: {e}") from None
     if not same:
@@ -282,20 +301,35 @@ def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
         raise EvaluationError(
             f"{path}: checkpoint_version: fitted with weights v{data.get('checkpoint_version')}, the checkpoint holds v{version}"
         )
-    if [float(o) for o in data.get("openings", [])] != list(plan.openings):
-        raise EvaluationError(f"{path}: openings: fitted with {data.get('openings')}, this evaluation uses {list(plan.openings)}")
-    if float(data.get("scale", 1.0)) != plan.scale:
-        raise EvaluationError(f"{path}: scale: fitted with {data.get('scale')}, this evaluation uses {plan.scale}")
-    if data["scene"] == plan.scene and data.get("objects") == plan.objects:
-        shared = set(data.get("scene_seeds", [])) & {episode_seed(plan.seed, e) for e in range(plan.episodes)}
-        if shared:
+    openings = data.get("openings")
+    if not isinstance(openings, list) or openings != list(plan.openings):
+        raise EvaluationError(f"{path}: openings: fitted with {openings}, this evaluation uses {list(plan.openings)}")
+    if data.get("scale") != plan.scale:
+        raise EvaluationError(f"{path}: scale: fitted with {data.get('scale')!r}, this evaluation uses {plan.scale}")
+    if not isinstance(data.get("config"), dict):
+        raise EvaluationError(f"{path}: config: missing (the resolved config of the calibration's evaluation)")
+    theirs, mine = _flat(data["config"]), _flat(to_dict(plan.cfg))
+    for key in sorted(set(theirs) | set(mine)):
+        if key not in CALIBRATION_FREE and theirs.get(key) != mine.get(key):
             raise EvaluationError(
-                f"{path}: scene_seeds: the calibration trials share {len(shared)} scenes with this evaluation "
-                "(fit it on other objects or another --seed)"
+                f"{path}: config.{key}: fitted with {theirs.get(key)!r}, this evaluation uses {mine.get(key)!r}"
+            )
+    if data["scene"] == plan.scene and data.get("objects") == plan.objects:
+        evaluated = {episode_seed(plan.seed, e) for e in range(plan.episodes)}
+        episodes = data.get("episode_results")
+        fitted = set()
+        for n, record in enumerate(episodes if isinstance(episodes, list) else []):
+            if not isinstance(record, dict) or not isinstance(record.get("scene_seed"), int):
+                raise EvaluationError(f"{path}: episode_results[{n}]: scene_seed: missing or not an integer")
+            fitted.add(record["scene_seed"])
+        if fitted & evaluated:
+            raise EvaluationError(
+                f"{path}: scene_seeds: the calibration trials share {len(fitted & evaluated)} scenes with this "
+                "evaluation (fit it on other objects or another --seed)"
             )
     cal = calibration_from_result(str(path), data)
     cal.shifts(plan.gripper_names)  # every evaluated gripper has trials
-    return cal
+    return replace(cal, sha256=hashlib.sha256(Path(path).read_bytes()).hexdigest())
 
 
 # --------------------------------------------------------------------------------------

@@ -65,8 +65,10 @@ def fit_shift(scores, successes, prior_sigma: float = PRIOR_SIGMA) -> float:
     def slope(b: float) -> float:
         return float(np.sum(y - sigmoid(z + b)) - b / prior_sigma**2)
 
-    lo, hi = -60.0, 60.0
-    for _ in range(100):
+    # at the maximum b / prior_sigma^2 = sum(y - p), which lies in [-N, N]: |b| <= N prior_sigma^2
+    hi = z.size * prior_sigma**2 + 1.0
+    lo = -hi
+    for _ in range(200):
         mid = 0.5 * (lo + hi)
         if slope(mid) > 0:
             lo = mid
@@ -99,13 +101,15 @@ class Calibration:
     """Prior standard deviation the shifts were fitted with (logits)."""
     source: str
     """The result file the trials came from."""
+    sha256: str = ""
+    """SHA-256 of that file's bytes, when it was read from one."""
 
     def shifts(self, names: list[str]) -> np.ndarray:
         """(G,) float64 shifts (logits) of the grippers ``names``, in that order."""
         missing = [n for n in names if n not in self.grippers]
         if missing:
             raise CalibrationError(
-                f"{self.source}: per_gripper: no trials of gripper {missing[0]} (it has {sorted(self.grippers)})"
+                f"{self.source}: episode_results: no trials of gripper {missing[0]} (it has {sorted(self.grippers)})"
             )
         return np.array([self.grippers[n].shift for n in names], dtype=np.float64)
 
@@ -117,6 +121,7 @@ class Calibration:
         """JSON-ready record of the calibration."""
         return {
             "source": self.source,
+            "sha256": self.sha256,
             "prior_sigma": self.prior_sigma,
             "grippers": {
                 n: {"shift": f.shift, "trials": f.trials, "successes": f.successes, "mean_score": f.mean_score}
@@ -143,7 +148,7 @@ def fit_calibration(trials: dict[str, list[tuple[float, bool]]], source: str,
     fits = {}
     for name, rows in trials.items():
         if not rows:
-            raise CalibrationError(f"{source}: per_gripper: no trials of gripper {name}")
+            raise CalibrationError(f"{source}: episode_results: no trials of gripper {name}")
         scores = np.array([s for s, _ in rows], dtype=np.float64)
         ok = np.array([bool(y) for _, y in rows])
         if not np.all((scores >= 0.0) & (scores <= 1.0)):
@@ -168,7 +173,9 @@ def calibration_from_result(path: str, data: dict, prior_sigma: float = PRIOR_SI
     for n, record in enumerate(episodes):
         try:
             for t in record["trials"]:
-                trials.setdefault(str(t["gripper"]), []).append((float(t["score"]), bool(t["success"])))
+                if not isinstance(t["success"], bool):
+                    raise ValueError(f"success: expected true or false, got {t['success']!r}")
+                trials.setdefault(str(t["gripper"]), []).append((float(t["score"]), t["success"]))
         except (KeyError, TypeError, ValueError) as e:
             raise CalibrationError(f"{path}: episode_results[{n}]: malformed trial ({type(e).__name__}: {e})") from None
     return fit_calibration(trials, str(path), prior_sigma)

@@ -153,14 +153,19 @@ class LearnedPolicy:
         """(G, S, R, X, Y) float32 scores of the last call (only the drawn opening for fix-config);
         float64 and calibrated when ``score_shifts`` is set."""
         self.score_shifts = None if score_shifts is None else np.asarray(score_shifts, dtype=np.float64)
-        """(G,) float64 logit shift per gripper, or None."""
+        """(G,) float64 logit shift per gripper (in the order of ``grippers``), or None."""
         if grippers is not None:
             self.set_grippers(grippers)
 
     def set_grippers(self, grippers: list[tuple[str, np.ndarray]]) -> None:
-        """Candidate grippers: (key, encoding (S, 2, gX, gY, gZ) float32) each."""
+        """Candidate grippers: (key, encoding (S, 2, gX, gY, gZ) float32) each; with ``score_shifts``
+        set, as many as it has shifts."""
         if not grippers:
             raise PolicyError("grippers: expected at least one (key, encoding) pair")
+        if self.score_shifts is not None and self.score_shifts.shape != (len(grippers),):
+            raise PolicyError(
+                f"score_shifts: expected one per gripper ({len(grippers)}), got shape {self.score_shifts.shape}"
+            )
         if self.mode != "adagrasp" and len(grippers) != 1:
             raise PolicyError(f"grippers: mode {self.mode} takes one gripper, got {len(grippers)}")
         for n, (key, enc) in enumerate(grippers):

@@ -44,7 +44,11 @@ def test_fit_edge_cases():
     all_ok = fit_shift([0.5] * 10, [True] * 10)
     none_ok = fit_shift([0.5] * 10, [False] * 10)
     assert 0 < all_ok < 20 and none_ok == pytest.approx(-all_ok, abs=1e-9)
-    assert np.isfinite(fit_shift([1.0, 0.0], [False, True]))
+    assert fit_shift([1.0, 0.0], [False, True]) == pytest.approx(0.0, abs=1e-9)  # opposite mistakes cancel
+    assert fit_shift([1.0, 1.0], [False, False]) < -2.0  # confident failures pull the shift down
+    # a wide prior and one-sided trials: the maximum lies far out, and is still found
+    wide = fit_shift([0.5] * 50, [True] * 50, prior_sigma=100.0)
+    assert wide > 10 and abs(np.sum(1 - sigmoid(logit([0.5] * 50) + wide)) - wide / 100.0**2) < 1e-6
     with pytest.raises(CalibrationError, match="2 scores but 1 outcomes"):
         fit_shift([0.5, 0.6], [True])
     with pytest.raises(CalibrationError, match="prior_sigma"):
@@ -86,7 +90,7 @@ def test_calibration_from_a_result():
     np.testing.assert_allclose(cal.shifts(["b", "a"]), [b.shift, a.shift])
     record = cal.to_dict()
     assert record["source"] == "cal.json" and record["grippers"]["a"]["successes"] == 2
-    with pytest.raises(CalibrationError, match=r"cal.json: per_gripper: no trials of gripper c"):
+    with pytest.raises(CalibrationError, match=r"cal.json: episode_results: no trials of gripper c"):
         cal.shifts(["a", "c"])
 
 
@@ -97,6 +101,8 @@ def test_calibration_from_a_result():
         ({"policy": "fix-gripper", "episode_results": []}, "cal.json: episode_results: missing or empty"),
         ({"policy": "fix-gripper", "episode_results": [{"trials": [{"gripper": "a"}]}]},
          "cal.json: episode_results[0]: malformed trial"),
+        ({"policy": "fix-gripper", "episode_results": [{"trials": [{"gripper": "a", "score": 0.5, "success": "false"}]}]},
+         "cal.json: episode_results[0]: malformed trial (ValueError: success: expected true or false, got 'false')"),
         (result(trials={"a": [(1.5, True)]}), "cal.json: score: gripper a has scores outside"),
     ],
 )

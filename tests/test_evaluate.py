@@ -1,6 +1,7 @@
 """The evaluation protocol: scene kinds, scripted and learned policies, seeds shared by every
 policy and gripper, history-independent episodes, errors, camera counts and the merged table."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -429,6 +430,7 @@ def test_calibrated_adagrasp_chooses_the_reliable_gripper(small, calibration_run
     assert len(trials) == 3 and all(t["gripper"] == t["executed"] == winner for t in trials)
     fit = result["calibration"]
     assert fit["source"] == str(cal) and set(fit["grippers"]) == {GRIPPER, OTHER}
+    assert fit["sha256"] == hashlib.sha256(cal.read_bytes()).hexdigest()
     loser = OTHER if winner == GRIPPER else GRIPPER
     assert fit["grippers"][winner]["successes"] == 2 and fit["grippers"][loser]["successes"] == 0
     assert fit["grippers"][winner]["shift"] > 0 > fit["grippers"][loser]["shift"]
@@ -450,17 +452,30 @@ def test_calibrated_adagrasp_chooses_the_reliable_gripper(small, calibration_run
         ({"checkpoint": "elsewhere.pt"}, [], "checkpoint: fitted with 'elsewhere.pt'"),
         ({"checkpoint": "model:no_such_model"}, [], "checkpoint: model:no_such_model: no shipped model"),
         ({"openings": [0.5, 1.0]}, [], "openings: fitted with [0.5, 1.0]"),
-        ({"drop": OTHER}, [], f"per_gripper: no trials of gripper {OTHER}"),
+        ({"drop": OTHER}, [], f"episode_results: no trials of gripper {OTHER}"),
         ({"format": "other"}, [], "format: expected"),
+        ({"scale": 1.2}, [], "scale: fitted with 1.2, this evaluation uses 1.0"),
+        ({"scale": None}, [], "scale: fitted with None"),
+        ({"openings": None}, [], "openings: fitted with None"),
+        ({"sim": ("lift_height", 0.3)}, [], "config.sim.lift_height: fitted with 0.3, this evaluation uses 0.2"),
+        ({"sim": ("cameras", 2)}, [], "config.sim.cameras: fitted with 2, this evaluation uses 1"),
+        ({"config": None}, [], "config: missing"),
+        ({"no_seed": 1}, [], "episode_results[1]: scene_seed: missing or not an integer"),
     ],
 )
 def test_bad_calibration_is_one_line(small, calibration_run, tmp_path, capsys, change, extra, needle):
     cal_result, _ = calibration_run
     change = dict(change)
     drop = change.pop("drop", None)
-    data = {**cal_result, **change}
+    sim = change.pop("sim", None)
+    no_seed = change.pop("no_seed", None)
+    data = json.loads(json.dumps({**cal_result, **change}))
     if drop is not None:
         data["episode_results"] = [r for r in data["episode_results"] if r["gripper"] != drop]
+    if sim is not None:
+        data["config"]["sim"][sim[0]] = sim[1]
+    if no_seed is not None:
+        del data["episode_results"][no_seed]["scene_seed"]
     cal = edited(data, tmp_path, "bad-cal")
     flags = dict(zip(extra[::2], extra[1::2]))
     argv = learned_argv(small, flags.pop("--policy", "adagrasp"), "adagrasp", f"{GRIPPER},{OTHER}")
@@ -480,3 +495,13 @@ def test_unreadable_calibration_is_one_line(small, tmp_path, capsys):
     rc, result, _ = run_cli(argv, tmp_path)
     err = capsys.readouterr().err.strip()
     assert rc == 2 and result is None and "\n" not in err and f"{cal}: not valid JSON" in err
+
+
+def test_calibrated_adagrasp_on_ray_actors(small, calibration_run, tmp_path):
+    """The calibration reaches the Ray workers: the same choices as in this process."""
+    cal = edited(calibration_run[0], tmp_path, "cal-ray", winner=OTHER)
+    argv = [*learned_argv(small, "adagrasp", "adagrasp", f"{GRIPPER},{OTHER}", episodes=2), "--calibration", str(cal)]
+    runs = [run_cli([*argv, "--actors", str(k)], tmp_path, f"k{k}")[1] for k in (1, 2)]
+    trials = [[(t["gripper"], t["action"], t["success"]) for r in res["episode_results"] for t in r["trials"]] for res in runs]
+    assert trials[0] == trials[1] and {g for g, _, _ in trials[0]} == {OTHER}
+    assert runs[1]["actors"] == 2 and runs[1]["calibration"] == runs[0]["calibration"]

@@ -161,5 +161,5 @@ def test_planner_ranks_with_a_calibration():
     other = np.where(mask, raw_probs[best.gripper], -1.0)
     s, k, i, j = (int(v) for v in np.unravel_index(np.argmax(other), other.shape))
     assert best.action == (i, j, k, s, best.gripper)
-    with pytest.raises(PlannerError, match="calibration: cal.json: per_gripper: no trials of gripper wsg_50"):
+    with pytest.raises(PlannerError, match="calibration: cal.json: episode_results: no trials of gripper wsg_50"):
         planner.plan([depth], [K], [T], [GRIPPER, "wsg_50"], openings=(0.5, 1.0), calibration=cal)
