@@ -8,6 +8,7 @@ Usage::
     python -m launcher evaluate --scene single --objects test --grippers wsg_50,panda_hand \\
         --policy heuristic --episodes 100 --json results/single-te-te-heuristic.json
     python -m launcher evaluate table results/*.json --md results/table1.md
+    python -m launcher evaluate compare results/a.json results/b.json   # paired, same scenes
 
 Protocol (docs/EVALUATION.md has the whole text):
 
@@ -783,6 +784,11 @@ def cli(argv: list[str]) -> int:
     try:
         if argv and argv[0] == "table":
             table(argv[1:])
+            return 0
+        if argv and argv[0] == "compare":
+            from actors.compare import compare_cli  # imported here: actors.compare builds on this module
+
+            compare_cli(argv[1:])
             return 0
         summary = evaluate(argv)
     except (ValueError, SimulationError) as e:
