@@ -5,12 +5,15 @@ by chance far less than two independent samples would: the same hard scene is ha
 This module pairs the two results on the scenes they share and says whether B's rate differs
 from A's beyond chance, in two ways:
 
-- **Sign test over paired units.** A unit is one (gripper, scene) when both results are
-  per-gripper policies (paired on the grippers they share), else one scene, where a
-  per-gripper result counts the mean of its grippers' successes in that scene. B is better in
-  a unit when it had more successful grasps there. Two-sided exact binomial p-value over the
-  units where they differ (McNemar's exact test when every unit is one grasp); it treats units
-  as independent.
+- **Exact paired permutation test over units.** A unit is one (gripper, scene) when both
+  results are per-gripper policies (paired on the grippers they share), else one scene, where a
+  per-gripper result counts the mean of its grippers' successful grasps in that scene. Under
+  the null hypothesis each unit's difference B - A is as likely to have either sign; the
+  two-sided p-value is the probability, over all 2^U sign flips, of a summed difference at
+  least as far from zero as the observed one (computed exactly, by convolution). With every
+  difference 0 or +-1 (one grasp per unit) it is McNemar's exact test. It weighs each unit by
+  its difference, so a scene that A's grippers mostly lift and B misses counts for more than
+  one that B lifts and A's grippers mostly miss; it treats units as independent.
 - **Scene bootstrap of the rate difference.** The table's rate of each result (per-gripper
   policies: the mean of the per-gripper successes / attempts; ``adagrasp``: its successes /
   attempts) is recomputed on scenes drawn with replacement, the same draw for both results;
@@ -74,14 +77,24 @@ def table_rate(side: Side, weights: np.ndarray) -> np.ndarray:
     return (s / a).mean(axis=0)
 
 
-def sign_test_p(better: int, worse: int) -> float:
-    """Two-sided exact binomial p-value of ``better`` vs ``worse`` under p = 1/2 (1.0 when both are 0)."""
-    n = better + worse
-    if n == 0:
-        return 1.0
-    k = min(better, worse)
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
-    return min(1.0, 2.0 * tail)
+def sign_flip_p(diffs: np.ndarray, scale: int = 1) -> float:
+    """Two-sided exact p-value of the paired sign-flip permutation test of ``diffs``.
+
+    ``diffs``: (U,) float64 per-unit differences B - A, each a multiple of 1 / ``scale``.
+    Returns P(|sum of s_u * diffs_u| >= |sum of diffs|) over independent fair signs s_u; 1.0
+    when every difference is 0.
+    """
+    assert diffs.ndim == 1 and scale >= 1, (diffs.shape, scale)
+    steps = np.rint(np.abs(diffs) * scale).astype(np.int64)
+    assert np.allclose(steps, np.abs(diffs) * scale), "differences are not multiples of 1/scale"
+    observed = abs(int(np.rint(diffs.sum() * scale)))
+    total = int(steps.sum())
+    prob = np.zeros(2 * total + 1)
+    prob[total] = 1.0
+    for w in steps[steps > 0]:
+        prob = 0.5 * (np.roll(prob, w) + np.roll(prob, -w))
+    sums = np.abs(np.arange(-total, total + 1))
+    return float(min(1.0, prob[sums >= observed].sum()))
 
 
 def _episodes(path: str, summary: dict) -> dict[tuple[str | None, int], dict]:
@@ -150,18 +163,21 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     return _side(path_a, a, ea, ga, common), _side(path_b, b, eb, gb, common)
 
 
-def _unit_counts(sa: Side, sb: Side) -> tuple[np.ndarray, np.ndarray]:
-    """Per paired unit, A's and B's successes: (U,) float64 each."""
+def _unit_counts(sa: Side, sb: Side) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per paired unit, A's and B's successful grasps, (U,) float64 each, and the least common
+    multiple of the number of grippers each is averaged over (the differences are multiples of
+    its inverse)."""
     if not sa.pooled and not sb.pooled:
-        return sa.successes.ravel().astype(np.float64), sb.successes.ravel().astype(np.float64)
-    return sa.successes.mean(axis=0), sb.successes.mean(axis=0)
+        return sa.successes.ravel().astype(np.float64), sb.successes.ravel().astype(np.float64), 1
+    scale = math.lcm(1 if sa.pooled else len(sa.grippers), 1 if sb.pooled else len(sb.grippers))
+    return sa.successes.mean(axis=0), sb.successes.mean(axis=0), scale
 
 
 def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict:
     """The paired comparison of B against A (JSON-ready); ``seed`` seeds the bootstrap's generator."""
     scenes = sa.successes.shape[1]
     assert sb.successes.shape[1] == scenes and resamples >= 1
-    ua, ub = _unit_counts(sa, sb)
+    ua, ub, scale = _unit_counts(sa, sb)
     better, worse = int((ub > ua).sum()), int((ub < ua).sum())
     ones = np.ones((1, scenes))
     rate_a, rate_b = float(table_rate(sa, ones)[0]), float(table_rate(sb, ones)[0])
@@ -197,7 +213,8 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
         "b_better": better,
         "b_worse": worse,
         "same": int(ua.size) - better - worse,
-        "sign_test_p": sign_test_p(better, worse),
+        "p_value": sign_flip_p(ub - ua, scale),
+        "test": "exact paired sign-flip permutation test of the summed per-unit difference in successful grasps",
         "rate_difference": rate_b - rate_a,
         "ci95": [float(low), float(high)],
         "bootstrap": {"resamples": resamples, "seed": seed, "unit": "scene"},
@@ -219,15 +236,15 @@ def report(c: dict) -> str:
         side("B", c["b"]),
         f"  B - A: {c['rate_difference']:+.3f} (95% interval {lo:+.3f} to {hi:+.3f}, "
         f"{c['bootstrap']['resamples']} scene resamples); B better in {c['b_better']} units, worse in "
-        f"{c['b_worse']}, same in {c['same']}: sign test p = {c['sign_test_p']:.3g}",
+        f"{c['b_worse']}, same in {c['same']}: paired permutation test p = {c['p_value']:.3g}",
     ]) + "\n"
 
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m launcher evaluate compare",
-        description="Compare two evaluation results of one cell on the scenes they share: sign test over "
-        "paired units and a scene-bootstrap 95%% interval of the rate difference B - A.",
+        description="Compare two evaluation results of one cell on the scenes they share: exact paired "
+        "permutation test over units and a scene-bootstrap 95%% interval of the rate difference B - A.",
     )
     ap.add_argument("a", metavar="A.json", help="result written by evaluate --json (the baseline)")
     ap.add_argument("b", metavar="B.json", help="result written by evaluate --json (compared against A)")

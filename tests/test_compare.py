@@ -1,5 +1,6 @@
 """``evaluate compare``: pairing on shared scenes, the sign test, the scene bootstrap and its errors."""
 
+import itertools
 import json
 import math
 
@@ -48,11 +49,34 @@ FG_A = {"wsg_50": [(1, 5), (0, 5), (2, 4), (3, 3), (0, 5)], "panda_hand": [(2, 4
 FG_B = {"wsg_50": [(2, 4), (0, 5), (2, 4), (3, 3), (1, 5)], "panda_hand": [(1, 5), (3, 3), (1, 5), (3, 3), (1, 5)]}
 
 
-def test_sign_test_matches_the_binomial_tail():
-    assert cmp.sign_test_p(8, 2) == pytest.approx(2 * sum(math.comb(10, k) for k in range(3)) / 1024)
-    assert cmp.sign_test_p(2, 8) == cmp.sign_test_p(8, 2)
-    assert cmp.sign_test_p(10, 0) == pytest.approx(2 / 1024)
-    assert cmp.sign_test_p(5, 5) == 1.0 and cmp.sign_test_p(0, 0) == 1.0
+def binomial_two_sided(better, worse):
+    """McNemar's exact test: two-sided binomial tail of the discordant pairs."""
+    n, k = better + worse, min(better, worse)
+    return 1.0 if better == worse else min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2**n)
+
+
+def brute_force_p(diffs):
+    """The sign-flip p-value by enumerating all 2^U signs."""
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=len(diffs))))
+    sums = np.abs(signs @ np.asarray(diffs, dtype=float))
+    return float(np.mean(sums >= abs(sum(diffs)) - 1e-9))
+
+
+def test_sign_flip_test_is_mcnemar_for_one_grasp_units():
+    for better, worse, same in ((8, 2, 0), (2, 8, 5), (10, 0, 3), (5, 5, 1), (0, 0, 4), (21, 2, 77)):
+        diffs = np.array([1.0] * better + [-1.0] * worse + [0.0] * same)
+        assert cmp.sign_flip_p(diffs) == pytest.approx(binomial_two_sided(better, worse))
+
+
+def test_sign_flip_test_equals_enumerating_every_sign():
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        diffs = rng.integers(-5, 6, size=int(rng.integers(1, 12))) / 5.0
+        assert cmp.sign_flip_p(diffs, scale=5) == pytest.approx(brute_force_p(diffs))
+    # Many small wins against a few large losses: a count of signs would call B better.
+    diffs = np.array([0.2] * 9 + [-0.8] * 3)
+    assert cmp.sign_flip_p(diffs, scale=5) == pytest.approx(brute_force_p(diffs))
+    assert cmp.sign_flip_p(diffs, scale=5) > 0.5 and binomial_two_sided(9, 3) < 0.15
 
 
 def test_per_gripper_results_pair_on_gripper_and_scene(tmp_path):
@@ -66,7 +90,7 @@ def test_per_gripper_results_pair_on_gripper_and_scene(tmp_path):
     better = sum(y > x for x, y in zip(ua, ub))
     worse = sum(y < x for x, y in zip(ua, ub))
     assert (c["b_better"], c["b_worse"], c["same"]) == (better, worse, 10 - better - worse) == (4, 1, 5)
-    assert c["sign_test_p"] == pytest.approx(cmp.sign_test_p(4, 1))
+    assert c["p_value"] == pytest.approx(brute_force_p([y - x for x, y in zip(ua, ub)]))
     assert c["a"]["rate"] == pytest.approx(a["rate"]) and c["b"]["rate"] == pytest.approx(b["rate"])
     assert c["rate_difference"] == pytest.approx(b["rate"] - a["rate"])
     lo, hi = c["ci95"]
@@ -90,7 +114,7 @@ def test_identical_results_differ_by_nothing(tmp_path):
     a = result("fix-gripper", FG_A, SEEDS)
     c = cmp.compare(*cmp.pair("a", a, "a", a), resamples=500)
     assert c["rate_difference"] == 0 and c["ci95"] == [0.0, 0.0]
-    assert (c["b_better"], c["b_worse"], c["same"], c["sign_test_p"]) == (0, 0, 10, 1.0)
+    assert (c["b_better"], c["b_worse"], c["same"], c["p_value"]) == (0, 0, 10, 1.0)
 
 
 def test_a_clear_difference_has_an_interval_above_zero():
@@ -98,7 +122,7 @@ def test_a_clear_difference_has_an_interval_above_zero():
     a = result("adagrasp", [(0, 5)] * 28 + [(1, 5)] * 2, seeds)
     b = result("adagrasp", [(3, 4)] * 25 + [(0, 5)] * 5, seeds)
     c = cmp.compare(*cmp.pair("a", a, "b", b))
-    assert c["ci95"][0] > 0.3 and c["b_better"] == 25 and c["sign_test_p"] < 1e-5
+    assert c["ci95"][0] > 0.3 and c["b_better"] == 25 and c["p_value"] < 1e-5
 
 
 def test_adagrasp_against_per_gripper_pairs_scenes_on_the_gripper_mean():
@@ -110,6 +134,7 @@ def test_adagrasp_against_per_gripper_pairs_scenes_on_the_gripper_mean():
     assert c["unit"] == "scene" and c["units"] == 5
     better, worse = sum(o > m for o, m in zip(ours, means)), sum(o < m for o, m in zip(ours, means))
     assert (c["b_better"], c["b_worse"]) == (better, worse) == (2, 1)
+    assert c["p_value"] == pytest.approx(brute_force_p([o - m for o, m in zip(ours, means)]))
     assert c["a"]["rate"] == pytest.approx(fg["rate"]) and c["b"]["rate"] == pytest.approx(ada["rate"])
     only = cmp.compare(*cmp.pair("fg", fg, "ada", ada, only=["wsg_50"]), resamples=500)
     assert only["a"]["grippers"] == ["wsg_50"]
