@@ -2,34 +2,33 @@
 
 Every policy of a cell sees the same scenes (docs/EVALUATION.md, "Seeds"), so two rows differ
 by chance far less than two independent samples would: the same hard scene is hard for both.
-This module pairs the two results on the scenes they share and says whether B's rate differs
-from A's beyond chance, in two ways:
+This module pairs the two results on the scenes they share (and, both per-gripper, on the
+grippers they share) and says whether B's table rate differs from A's beyond chance. The
+scene is the unit throughout: the grippers and attempts of one scene stay together.
 
-- **Exact paired permutation test over units.** A unit is one (gripper, scene) when both
-  results are per-gripper policies (paired on the grippers they share), else one scene, where a
-  per-gripper result counts the mean of its grippers' successful grasps in that scene. Under
-  the null hypothesis each unit's difference B - A is as likely to have either sign; the
-  two-sided p-value is the probability, over all 2^U sign flips, of a summed difference at
-  least as far from zero as the observed one (computed exactly, by convolution). With every
-  difference 0 or +-1 (one grasp per unit) it is McNemar's exact test. It weighs each unit by
-  its difference, so a scene that A's grippers mostly lift and B misses counts for more than
-  one that B lifts and A's grippers mostly miss; it treats units as independent.
-- **Scene bootstrap of the rate difference.** The table's rate of each result (per-gripper
-  policies: the mean of the per-gripper successes / attempts; ``adagrasp``: its successes /
-  attempts) is recomputed on scenes drawn with replacement, the same draw for both results;
-  the 2.5 and 97.5 percentiles of B - A are its 95% interval. Scenes are the resampling unit,
-  so grippers and attempts of one scene stay together.
+- **Rate.** Each result's rate as the table has it (per-gripper policies: the mean over the
+  grippers of successes / attempts; ``adagrasp``: successes / attempts), on the paired scenes.
+- **Interval.** The rates are recomputed on scenes drawn with replacement, the same draw for
+  both results; the 2.5 and 97.5 percentiles of B - A are its 95% interval.
+- **Permutation test** (when A and B are exchangeable: the same grippers, or both ``adagrasp``).
+  Under the null hypothesis that the two policies do equally well, swapping A's and B's records
+  of a scene changes nothing; the two-sided p-value is the share of scene swaps whose rate
+  difference is at least as far from zero as the observed one. Exact (by convolution) when
+  every episode has one attempt (single-object scenes), where the rate difference is the mean of
+  per-scene differences; else estimated from random swaps, p = (1 + hits) / (1 + draws). A
+  per-gripper result against an ``adagrasp`` one has no swap (one chooses among the grippers the
+  other runs one by one): the interval alone decides.
 
 The scenes must be the same scenes: the same scene kind and object set, and for every shared
-scene seed the same objects in the same roles; otherwise the comparison stops with one line
-naming the file and the key.
+scene seed the same objects in the same roles in every record of both files; an ``adagrasp``
+result compared with a per-gripper one must choose among that result's grippers. Otherwise the
+comparison stops with one line naming the file and the key.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,21 +97,29 @@ def sign_flip_p(diffs: np.ndarray, scale: int = 1) -> float:
 
 
 def _episodes(path: str, summary: dict) -> dict[tuple[str | None, int], dict]:
+    """(gripper, scene seed) -> episode record of one result; raises one line on a malformed record."""
     records = summary.get("episode_results")
     if not isinstance(records, list) or not records:
         raise EvaluationError(f"{path}: episode_results: missing or empty (a result written by evaluate --json)")
     out: dict[tuple[str | None, int], dict] = {}
     for i, r in enumerate(records):
-        try:
-            key = (r["gripper"], int(r["scene_seed"]))
-            r["successes"], r["attempts"], r["objects"]
-        except (KeyError, TypeError, ValueError):
-            raise EvaluationError(
-                f"{path}: episode_results[{i}]: needs gripper, scene_seed, successes, attempts and objects"
-            ) from None
-        if r["attempts"] < 1:
-            raise EvaluationError(f"{path}: episode_results[{i}].attempts: {r['attempts']}, expected >= 1")
+        where = f"{path}: episode_results[{i}]"
+        if not isinstance(r, dict) or not all(k in r for k in ("gripper", "scene_seed", "successes", "attempts", "objects")):
+            raise EvaluationError(f"{where}: needs gripper, scene_seed, successes, attempts and objects")
+        counts = (r["scene_seed"], r["successes"], r["attempts"])
+        if not all(isinstance(v, int) and not isinstance(v, bool) for v in counts):
+            raise EvaluationError(f"{where}: scene_seed, successes and attempts must be integers, got {counts}")
+        if not isinstance(r["gripper"], (str, type(None))) or not isinstance(r["objects"], list):
+            raise EvaluationError(f"{where}: gripper must be a name or null and objects a list")
+        if not 0 <= r["successes"] <= r["attempts"] or r["attempts"] < 1:
+            raise EvaluationError(f"{where}: successes {r['successes']}, attempts {r['attempts']}: "
+                                  "expected 0 <= successes <= attempts and attempts >= 1")
+        key = (r["gripper"], r["scene_seed"])
+        if key in out:
+            raise EvaluationError(f"{where}: gripper {key[0]}, scene_seed {key[1]}: repeated")
         out[key] = r
+    if len({g is None for g, _ in out}) > 1:
+        raise EvaluationError(f"{path}: episode_results: mixes adagrasp records (gripper null) with per-gripper ones")
     return out
 
 
@@ -123,13 +130,27 @@ def _side(path: str, summary: dict, episodes: dict, grippers: list[str | None], 
 
 
 def _grippers(path: str, episodes: dict, only: list[str] | None) -> list[str | None]:
-    names = sorted({g for g, _ in episodes}, key=lambda g: (g is None, g or ""))
+    names = sorted({g for g, _ in episodes}, key=lambda g: g or "")
     if names == [None] or only is None:
         return names
     missing = [g for g in only if g not in names]
     if missing:
         raise EvaluationError(f"{path}: --gripper {','.join(missing)}: not among its grippers {names}")
     return [g for g in names if g in only]
+
+
+def _check_candidates(path_fix: str, grippers: list[str | None], path_ada: str, ada: dict, only) -> None:
+    """A per-gripper result against an ``adagrasp`` one: its grippers must be the candidates
+    ``adagrasp`` chose among (all of them, unless ``--gripper`` keeps fewer)."""
+    candidates = ada.get("gripper_names")
+    if not isinstance(candidates, list):
+        raise EvaluationError(f"{path_ada}: gripper_names: missing")
+    fine = set(grippers) <= set(candidates) if only else set(grippers) == set(candidates)
+    if not fine:
+        raise EvaluationError(
+            f"{path_fix}: grippers {grippers}: adagrasp in {path_ada} chose among {sorted(candidates)} "
+            "(--gripper compares with some of them)"
+        )
 
 
 def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = None) -> tuple[Side, Side]:
@@ -140,45 +161,81 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     scenes or share none.
     """
     for key in ("scene", "objects"):
+        for path, data in ((path_a, a), (path_b, b)):
+            if key not in data:
+                raise EvaluationError(f"{path}: {key}: missing")
         if a[key] != b[key]:
             raise EvaluationError(f"{path_b}: {key}: {b[key]!r}, but {path_a} has {a[key]!r}: not the same scenes")
     ea, eb = _episodes(path_a, a), _episodes(path_b, b)
     ga, gb = _grippers(path_a, ea, only), _grippers(path_b, eb, only)
-    if None not in ga and None not in gb:
+    if ga != [None] and gb != [None]:
         ga = gb = [g for g in ga if g in gb]
         if not ga:
             raise EvaluationError(f"{path_b}: per_gripper: no gripper in common with {path_a}")
-    seeds_a = [s for _, s in ea]
-    common = [s for s in dict.fromkeys(seeds_a) if all((g, s) in ea for g in ga) and all((g, s) in eb for g in gb)]
+    elif ga != [None]:
+        _check_candidates(path_a, ga, path_b, b, only)
+    elif gb != [None]:
+        _check_candidates(path_b, gb, path_a, a, only)
+    seeds_a = dict.fromkeys(s for _, s in ea)
+    common = [s for s in seeds_a if all((g, s) in ea for g in ga) and all((g, s) in eb for g in gb)]
     if not common:
         raise EvaluationError(f"{path_b}: scene_seeds: no scene in common with {path_a}")
     for s in common:
-        objects_a = next(ea[(g, s)]["objects"] for g in ga)
-        for g in gb:
-            if eb[(g, s)]["objects"] != objects_a:
-                raise EvaluationError(
-                    f"{path_b}: episode_results (scene_seed {s}, gripper {g}).objects: not the objects of "
-                    f"{path_a}'s scene {s} (another simulation or object set)"
-                )
+        reference = ea[(ga[0], s)]["objects"]
+        for path, episodes, grippers in ((path_a, ea, ga), (path_b, eb, gb)):
+            for g in grippers:
+                if episodes[(g, s)]["objects"] != reference:
+                    raise EvaluationError(
+                        f"{path}: episode_results (scene_seed {s}, gripper {g}).objects: not the objects of "
+                        f"{path_a}'s scene {s}, gripper {ga[0]} (another simulation or object set)"
+                    )
     return _side(path_a, a, ea, ga, common), _side(path_b, b, eb, gb, common)
 
 
-def _unit_counts(sa: Side, sb: Side) -> tuple[np.ndarray, np.ndarray, int]:
-    """Per paired unit, A's and B's successful grasps, (U,) float64 each, and the least common
-    multiple of the number of grippers each is averaged over (the differences are multiples of
-    its inverse)."""
-    if not sa.pooled and not sb.pooled:
-        return sa.successes.ravel().astype(np.float64), sb.successes.ravel().astype(np.float64), 1
-    scale = math.lcm(1 if sa.pooled else len(sa.grippers), 1 if sb.pooled else len(sb.grippers))
-    return sa.successes.mean(axis=0), sb.successes.mean(axis=0), scale
+def _rates(successes: np.ndarray, attempts: np.ndarray, pooled: bool) -> np.ndarray:
+    """The table's rate from per-gripper sums: (R, G) successes and attempts -> (R,) rates."""
+    if pooled:
+        return successes.sum(axis=1) / attempts.sum(axis=1)
+    return (successes / attempts).mean(axis=1)
+
+
+def swapped_differences(sa: Side, sb: Side, swaps: np.ndarray) -> np.ndarray:
+    """Rate difference B - A after swapping A's and B's records of the scenes marked in each row of
+    ``swaps`` ((R, E) 0/1); needs the same grippers on both sides. Returns (R,) float64."""
+    assert sa.grippers == sb.grippers and swaps.shape[1] == sa.successes.shape[1], (sa.grippers, swaps.shape)
+    keep = 1.0 - swaps
+    s_a = keep @ sa.successes.T + swaps @ sb.successes.T
+    a_a = keep @ sa.attempts.T + swaps @ sb.attempts.T
+    s_b = keep @ sb.successes.T + swaps @ sa.successes.T
+    a_b = keep @ sb.attempts.T + swaps @ sa.attempts.T
+    return _rates(s_b, a_b, sb.pooled) - _rates(s_a, a_a, sa.pooled)
+
+
+def permutation_p(sa: Side, sb: Side, draws: int, rng: np.random.Generator) -> tuple[float | None, str]:
+    """Two-sided p-value of the scene-swap permutation test of the rate difference, and how it was
+    computed; (None, why) when A and B are not exchangeable."""
+    if sa.grippers != sb.grippers:
+        return None, "none: a per-gripper result and an adagrasp one are not exchangeable"
+    if (sa.attempts == 1).all() and (sb.attempts == 1).all():
+        per_scene = (sb.successes - sa.successes).mean(axis=0).astype(np.float64)
+        return sign_flip_p(per_scene, scale=len(sa.grippers)), "exact scene-swap permutation test"
+    scenes = sa.successes.shape[1]
+    observed = abs(swapped_differences(sa, sb, np.zeros((1, scenes)))[0])
+    hits = 0
+    for start in range(0, draws, 10_000):
+        swaps = rng.integers(0, 2, size=(min(10_000, draws - start), scenes)).astype(np.float64)
+        hits += int((np.abs(swapped_differences(sa, sb, swaps)) >= observed - 1e-12).sum())
+    return (1 + hits) / (1 + draws), f"scene-swap permutation test, {draws} random swaps"
 
 
 def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = 0) -> dict:
-    """The paired comparison of B against A (JSON-ready); ``seed`` seeds the bootstrap's generator."""
+    """The paired comparison of B against A (JSON-ready); ``seed`` seeds the generator of the
+    bootstrap draws and the random swaps (``resamples`` of each)."""
     scenes = sa.successes.shape[1]
     assert sb.successes.shape[1] == scenes and resamples >= 1
-    ua, ub, scale = _unit_counts(sa, sb)
-    better, worse = int((ub > ua).sum()), int((ub < ua).sum())
+    scene_rate_a = sa.successes.sum(axis=0) / sa.attempts.sum(axis=0)
+    scene_rate_b = sb.successes.sum(axis=0) / sb.attempts.sum(axis=0)
+    better, worse = int((scene_rate_b > scene_rate_a).sum()), int((scene_rate_b < scene_rate_a).sum())
     ones = np.ones((1, scenes))
     rate_a, rate_b = float(table_rate(sa, ones)[0]), float(table_rate(sb, ones)[0])
     rng = np.random.default_rng(seed)
@@ -187,6 +244,7 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
     np.add.at(weights, (np.arange(resamples)[:, None], draws), 1.0)
     diffs = table_rate(sb, weights) - table_rate(sa, weights)
     low, high = np.percentile(diffs, [2.5, 97.5])
+    p_value, test = permutation_p(sa, sb, resamples, rng)
 
     def side(s: Side, rate: float) -> dict:
         return {
@@ -206,15 +264,14 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
         "scene": sa.summary["scene"],
         "objects": sa.summary["objects"],
         "scenes": scenes,
-        "unit": "(gripper, scene)" if not sa.pooled and not sb.pooled else "scene",
         "a": side(sa, rate_a),
         "b": side(sb, rate_b),
-        "units": int(ua.size),
         "b_better": better,
         "b_worse": worse,
-        "same": int(ua.size) - better - worse,
-        "p_value": sign_flip_p(ub - ua, scale),
-        "test": "exact paired sign-flip permutation test of the summed per-unit difference in successful grasps",
+        "same": scenes - better - worse,
+        "tally": "scenes where B's successes / attempts (over the paired grippers) is above, below or equal to A's",
+        "p_value": p_value,
+        "test": test,
         "rate_difference": rate_b - rate_a,
         "ci95": [float(low), float(high)],
         "bootstrap": {"resamples": resamples, "seed": seed, "unit": "scene"},
@@ -222,36 +279,39 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
 
 
 def report(c: dict) -> str:
-    """Three lines of text for a comparison from :func:`compare`."""
+    """Four lines of text for a comparison from :func:`compare`."""
 
     def side(tag: str, s: dict) -> str:
-        return (f"  {tag} {s['row']}: rate {s['rate']:.3f} ({s['successes']}/{s['attempts']} grasps), "
-                f"{s['path']}")
+        grippers = "adagrasp's choice" if s["grippers"] == [None] else ",".join(s["grippers"])
+        return (f"  {tag} {s['row']}: rate {s['rate']:.3f} ({s['successes']}/{s['attempts']} grasps; "
+                f"{grippers}), {s['path']}")
 
     lo, hi = c["ci95"]
+    test = "no permutation test (a per-gripper and an adagrasp result are not exchangeable)"
+    if c["p_value"] is not None:
+        test = f"{c['test']}: p = {c['p_value']:.3g}"
     return "\n".join([
-        f"compare: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} paired scenes, "
-        f"{c['units']} units of {c['unit']}",
+        f"compare: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} paired scenes",
         side("A", c["a"]),
         side("B", c["b"]),
         f"  B - A: {c['rate_difference']:+.3f} (95% interval {lo:+.3f} to {hi:+.3f}, "
-        f"{c['bootstrap']['resamples']} scene resamples); B better in {c['b_better']} units, worse in "
-        f"{c['b_worse']}, same in {c['same']}: paired permutation test p = {c['p_value']:.3g}",
+        f"{c['bootstrap']['resamples']} scene resamples); per scene B above A in {c['b_better']}, below in "
+        f"{c['b_worse']}, level in {c['same']}; {test}",
     ]) + "\n"
 
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m launcher evaluate compare",
-        description="Compare two evaluation results of one cell on the scenes they share: exact paired "
-        "permutation test over units and a scene-bootstrap 95%% interval of the rate difference B - A.",
+        description="Compare two evaluation results of one cell on the scenes they share: a scene-bootstrap "
+        "95%% interval of the rate difference B - A and a scene-swap permutation test.",
     )
     ap.add_argument("a", metavar="A.json", help="result written by evaluate --json (the baseline)")
     ap.add_argument("b", metavar="B.json", help="result written by evaluate --json (compared against A)")
     ap.add_argument("--gripper", default=None, metavar="NAME[,NAME...]",
                     help="per-gripper results: keep only these grippers")
-    ap.add_argument("--resamples", type=int, default=BOOTSTRAP_RESAMPLES, help="bootstrap scene resamples")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the bootstrap's generator")
+    ap.add_argument("--resamples", type=int, default=BOOTSTRAP_RESAMPLES, help="bootstrap scene draws, and random swaps of the permutation test")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the generator of the draws and swaps")
     ap.add_argument("--json", default=None, help="write the comparison here")
     return ap
 

@@ -1,8 +1,9 @@
-"""``evaluate compare``: pairing on shared scenes, the sign test, the scene bootstrap and its errors."""
+"""``evaluate compare``: pairing on shared scenes, the scene bootstrap, the permutation test, errors."""
 
 import itertools
 import json
 import math
+import random
 
 import numpy as np
 import pytest
@@ -10,27 +11,30 @@ import pytest
 from actors import compare as cmp
 from actors import evaluate as ev
 
-OBJECTS = [["ycb/015_peach", "target"], ["random_urdfs/901", "obstacle"]]
+
+def scene_objects(seed):
+    """Objects and roles of scene ``seed``: different in every scene, as in a real result."""
+    return [[f"ycb/{seed % 7:03d}", "target"], [f"random_urdfs/{seed}", "obstacle"]]
 
 
 def result(policy, table, seeds, grippers=("wsg_50", "panda_hand"), scene="obstacle", objects="test"):
     """A result JSON as ``evaluate --json`` writes it (the keys compare reads).
 
     ``table``: per-gripper policies {gripper: [(successes, attempts) per scene]}; ``adagrasp``:
-    [(successes, attempts) per scene].
+    [(successes, attempts) per scene]; ``grippers``: the cell's grippers (adagrasp's candidates).
     """
     rows = {None: table} if policy == "adagrasp" else table
     episodes, per = [], {}
     for g, cells in rows.items():
         for e, (s, a) in enumerate(cells):
             episodes.append({"index": len(episodes), "episode": e, "gripper": g, "scene_seed": seeds[e],
-                             "objects": OBJECTS, "attempts": a, "successes": s})
-    for g in grippers:
+                             "objects": scene_objects(seeds[e]), "attempts": a, "successes": s})
+    for g in rows:
         mine = [r for r in episodes if r["gripper"] == g]
         s, a = sum(r["successes"] for r in mine), sum(r["attempts"] for r in mine)
-        per[g] = {"successes": s, "attempts": a, "rate": s / a if a else None}
+        per[g] = {"successes": s, "attempts": a, "rate": s / a}
     succ, att = sum(r["successes"] for r in episodes), sum(r["attempts"] for r in episodes)
-    rate = succ / att if policy == "adagrasp" else float(np.mean([per[g]["rate"] for g in grippers]))
+    rate = succ / att if policy == "adagrasp" else float(np.mean([v["rate"] for v in per.values()]))
     return {"format": ev.FORMAT, "policy": policy, "scene": scene, "objects": objects, "objects_label": "O_te",
             "grippers": "test", "grippers_label": "G_te", "gripper_names": list(grippers), "cameras": 1,
             "rate": rate, "episodes": len(seeds), "seed": 0, "scene_seeds": list(seeds),
@@ -62,6 +66,26 @@ def brute_force_p(diffs):
     return float(np.mean(sums >= abs(sum(diffs)) - 1e-9))
 
 
+def brute_force_swap_p(policy, table_a, table_b, seeds):
+    """The scene-swap p-value by enumerating every swap and rebuilding both results' rates."""
+    def cells(table, e):
+        return table[e] if policy == "adagrasp" else {g: v[e] for g, v in table.items()}
+
+    def build(chosen):
+        if policy == "adagrasp":
+            return result(policy, chosen, seeds)["rate"]
+        return result(policy, {g: [c[g] for c in chosen] for g in table_a}, seeds)["rate"]
+
+    n = len(seeds)
+    observed = abs(build([cells(table_b, e) for e in range(n)]) - build([cells(table_a, e) for e in range(n)]))
+    hits = 0
+    for swap in itertools.product((0, 1), repeat=n):
+        a = [cells(table_b if s else table_a, e) for e, s in enumerate(swap)]
+        b = [cells(table_a if s else table_b, e) for e, s in enumerate(swap)]
+        hits += abs(build(b) - build(a)) >= observed - 1e-12
+    return hits / 2**n
+
+
 def test_sign_flip_test_is_mcnemar_for_one_grasp_units():
     for better, worse, same in ((8, 2, 0), (2, 8, 5), (10, 0, 3), (5, 5, 1), (0, 0, 4), (21, 2, 77)):
         diffs = np.array([1.0] * better + [-1.0] * worse + [0.0] * same)
@@ -73,28 +97,45 @@ def test_sign_flip_test_equals_enumerating_every_sign():
     for _ in range(20):
         diffs = rng.integers(-5, 6, size=int(rng.integers(1, 12))) / 5.0
         assert cmp.sign_flip_p(diffs, scale=5) == pytest.approx(brute_force_p(diffs))
-    # Many small wins against a few large losses: a count of signs would call B better.
-    diffs = np.array([0.2] * 9 + [-0.8] * 3)
-    assert cmp.sign_flip_p(diffs, scale=5) == pytest.approx(brute_force_p(diffs))
-    assert cmp.sign_flip_p(diffs, scale=5) > 0.5 and binomial_two_sided(9, 3) < 0.15
 
 
-def test_per_gripper_results_pair_on_gripper_and_scene(tmp_path):
+def test_per_gripper_results_pair_on_gripper_and_scene():
     a, b = result("fix-gripper", FG_A, SEEDS), result("fix-gripper", FG_B, SEEDS)
-    sa, sb = cmp.pair("a", a, "b", b)
-    c = cmp.compare(sa, sb, resamples=2000)
-    assert c["unit"] == "(gripper, scene)" and c["units"] == 10 and c["scenes"] == 5
-    # Units: gripper (sorted by name) x scene; counted here from the tables above.
-    ua = [s for g in ("panda_hand", "wsg_50") for s, _ in FG_A[g]]
-    ub = [s for g in ("panda_hand", "wsg_50") for s, _ in FG_B[g]]
-    better = sum(y > x for x, y in zip(ua, ub))
-    worse = sum(y < x for x, y in zip(ua, ub))
-    assert (c["b_better"], c["b_worse"], c["same"]) == (better, worse, 10 - better - worse) == (4, 1, 5)
-    assert c["p_value"] == pytest.approx(brute_force_p([y - x for x, y in zip(ua, ub)]))
+    c = cmp.compare(*cmp.pair("a", a, "b", b), resamples=20_000)
+    assert c["scenes"] == 5 and c["a"]["grippers"] == c["b"]["grippers"] == ["panda_hand", "wsg_50"]
     assert c["a"]["rate"] == pytest.approx(a["rate"]) and c["b"]["rate"] == pytest.approx(b["rate"])
     assert c["rate_difference"] == pytest.approx(b["rate"] - a["rate"])
+    # Per scene, successes / attempts over both grippers: A 3/9 1/10 2/9 6/7 1/10, B 3/9 3/8 3/9 6/6 2/10.
+    assert (c["b_better"], c["b_worse"], c["same"]) == (4, 0, 1)
+    assert c["p_value"] == pytest.approx(brute_force_swap_p("fix-gripper", FG_A, FG_B, SEEDS), abs=0.01)
+    assert "random swaps" in c["test"]
     lo, hi = c["ci95"]
-    assert lo <= c["rate_difference"] <= hi and lo < hi
+    assert lo < c["rate_difference"] < hi
+
+
+def test_one_grasp_scenes_get_the_exact_test():
+    rng = random.Random(3)
+    seeds = list(range(100, 110))
+    fa = {g: [(rng.randint(0, 1), 1) for _ in seeds] for g in ("wsg_50", "panda_hand")}
+    fb = {g: [(rng.randint(0, 1), 1) for _ in seeds] for g in ("wsg_50", "panda_hand")}
+    c = cmp.compare(*cmp.pair("a", result("fix-gripper", fa, seeds), "b", result("fix-gripper", fb, seeds)))
+    assert c["test"] == "exact scene-swap permutation test"
+    assert c["p_value"] == pytest.approx(brute_force_swap_p("fix-gripper", fa, fb, seeds))
+    ada_a, ada_b = fa["wsg_50"], fb["panda_hand"]
+    c = cmp.compare(*cmp.pair("a", result("adagrasp", ada_a, seeds), "b", result("adagrasp", ada_b, seeds)))
+    better = sum(x[0] < y[0] for x, y in zip(ada_a, ada_b))
+    worse = sum(x[0] > y[0] for x, y in zip(ada_a, ada_b))
+    assert c["p_value"] == pytest.approx(binomial_two_sided(better, worse)), "McNemar's exact test"
+
+
+def test_random_swaps_estimate_the_enumerated_p_value():
+    rng = random.Random(8)
+    seeds = list(range(200, 210))
+    ta = [(rng.randint(0, 3), rng.randint(3, 5)) for _ in seeds]
+    tb = [(rng.randint(1, 3), rng.randint(3, 5)) for _ in seeds]
+    c = cmp.compare(*cmp.pair("a", result("adagrasp", ta, seeds), "b", result("adagrasp", tb, seeds)),
+                    resamples=40_000)
+    assert c["p_value"] == pytest.approx(brute_force_swap_p("adagrasp", ta, tb, seeds), abs=0.01)
 
 
 def test_bootstrap_weights_equal_repeating_the_scenes():
@@ -105,16 +146,25 @@ def test_bootstrap_weights_equal_repeating_the_scenes():
     weights = np.bincount(draw, minlength=5)[None, :].astype(float)
     repeated = result("fix-gripper", {g: [FG_A[g][i] for i in draw] for g in FG_A}, [100 + i for i in range(5)])
     assert cmp.table_rate(side, weights)[0] == pytest.approx(repeated["rate"])
-    pooled = cmp.pair("p", result("adagrasp", FG_A["wsg_50"], SEEDS), "p", result("adagrasp", FG_A["wsg_50"], SEEDS))[0]
+    ada = result("adagrasp", FG_A["wsg_50"], SEEDS)
+    pooled = cmp.pair("p", ada, "p", ada)[0]
     again = result("adagrasp", [FG_A["wsg_50"][i] for i in draw], [100 + i for i in range(5)])
     assert cmp.table_rate(pooled, weights)[0] == pytest.approx(again["rate"])
 
 
-def test_identical_results_differ_by_nothing(tmp_path):
+def test_identical_results_differ_by_nothing():
     a = result("fix-gripper", FG_A, SEEDS)
     c = cmp.compare(*cmp.pair("a", a, "a", a), resamples=500)
-    assert c["rate_difference"] == 0 and c["ci95"] == [0.0, 0.0]
-    assert (c["b_better"], c["b_worse"], c["same"], c["p_value"]) == (0, 0, 10, 1.0)
+    assert c["rate_difference"] == 0 and c["ci95"] == [0.0, 0.0], "A and B share every bootstrap draw"
+    assert (c["b_better"], c["b_worse"], c["same"], c["p_value"]) == (0, 0, 5, 1.0)
+
+
+def test_more_attempts_for_the_same_successes_is_a_lower_rate():
+    seeds = list(range(30))
+    c = cmp.compare(*cmp.pair("a", result("adagrasp", [(3, 3)] * 30, seeds),
+                              "b", result("adagrasp", [(3, 7)] * 30, seeds)))
+    assert c["rate_difference"] == pytest.approx(3 / 7 - 1) and c["ci95"][1] < -0.5
+    assert (c["b_better"], c["b_worse"]) == (0, 30) and c["p_value"] < 1e-3
 
 
 def test_a_clear_difference_has_an_interval_above_zero():
@@ -122,32 +172,42 @@ def test_a_clear_difference_has_an_interval_above_zero():
     a = result("adagrasp", [(0, 5)] * 28 + [(1, 5)] * 2, seeds)
     b = result("adagrasp", [(3, 4)] * 25 + [(0, 5)] * 5, seeds)
     c = cmp.compare(*cmp.pair("a", a, "b", b))
-    assert c["ci95"][0] > 0.3 and c["b_better"] == 25 and c["p_value"] < 1e-5
+    assert c["ci95"][0] > 0.3 and c["b_better"] == 25 and c["p_value"] < 1e-3
 
 
-def test_adagrasp_against_per_gripper_pairs_scenes_on_the_gripper_mean():
+def test_adagrasp_against_per_gripper_pairs_scenes_without_a_permutation_test(tmp_path, capsys):
     fg = result("fix-gripper", FG_A, SEEDS)
     ada = result("adagrasp", [(2, 4), (1, 5), (1, 5), (3, 3), (0, 5)], SEEDS)
     c = cmp.compare(*cmp.pair("fg", fg, "ada", ada), resamples=500)
-    means = [(FG_A["wsg_50"][e][0] + FG_A["panda_hand"][e][0]) / 2 for e in range(5)]  # 1.5, .5, 1, 3, .5
-    ours = [2, 1, 1, 3, 0]
-    assert c["unit"] == "scene" and c["units"] == 5
-    better, worse = sum(o > m for o, m in zip(ours, means)), sum(o < m for o, m in zip(ours, means))
-    assert (c["b_better"], c["b_worse"]) == (better, worse) == (2, 1)
-    assert c["p_value"] == pytest.approx(brute_force_p([o - m for o, m in zip(ours, means)]))
     assert c["a"]["rate"] == pytest.approx(fg["rate"]) and c["b"]["rate"] == pytest.approx(ada["rate"])
+    assert c["p_value"] is None and c["b"]["grippers"] == [None]
     only = cmp.compare(*cmp.pair("fg", fg, "ada", ada, only=["wsg_50"]), resamples=500)
     assert only["a"]["grippers"] == ["wsg_50"]
     assert only["a"]["rate"] == pytest.approx(fg["per_gripper"]["wsg_50"]["rate"])
+    assert ev.cli(["compare", write(tmp_path, "fg", fg), write(tmp_path, "ada", ada), "--resamples", "100"]) == 0
+    assert "no permutation test" in capsys.readouterr().out
 
 
-def test_only_shared_scenes_and_grippers_are_paired():
-    long = result("fix-gripper", {g: v + v for g, v in FG_A.items()}, SEEDS + [21, 22, 23, 24, 25])
+def test_pairing_follows_the_scene_seed_not_the_record_order():
+    """B ran other scenes too, in another order: only the shared seeds pair, each with its own record."""
+    seeds_b = [13, 99, 15, 11, 98]
+    b_table = {g: [FG_B[g][SEEDS.index(s)] if s in SEEDS else (5, 5) for s in seeds_b] for g in FG_B}
+    b = result("fix-gripper", b_table, seeds_b)
+    random.Random(1).shuffle(b["episode_results"])
+    c = cmp.compare(*cmp.pair("a", result("fix-gripper", FG_A, SEEDS), "b", b), resamples=200)
+    kept = [0, 2, 4]  # seeds 11, 13, 15
+    expected_b = result("fix-gripper", {g: [FG_B[g][i] for i in kept] for g in FG_B}, [11, 13, 15])
+    expected_a = result("fix-gripper", {g: [FG_A[g][i] for i in kept] for g in FG_A}, [11, 13, 15])
+    assert c["scenes"] == 3
+    assert c["b"]["rate"] == pytest.approx(expected_b["rate"]) and c["a"]["rate"] == pytest.approx(expected_a["rate"])
+
+
+def test_only_shared_grippers_are_paired():
     three = result("fix-gripper", {**FG_B, "pr2_gripper": FG_B["wsg_50"]}, SEEDS,
                    grippers=("wsg_50", "panda_hand", "pr2_gripper"))
-    c = cmp.compare(*cmp.pair("long", long, "three", three), resamples=200)
-    assert c["scenes"] == 5 and c["units"] == 10
+    c = cmp.compare(*cmp.pair("a", result("fix-gripper", FG_A, SEEDS), "three", three), resamples=200)
     assert c["b"]["grippers"] == ["panda_hand", "wsg_50"]
+    assert c["b"]["rate"] == pytest.approx(result("fix-gripper", FG_B, SEEDS)["rate"])
 
 
 def test_cli_prints_and_writes_the_comparison(tmp_path, capsys):
@@ -158,26 +218,57 @@ def test_cli_prints_and_writes_the_comparison(tmp_path, capsys):
     text = capsys.readouterr().out
     data = json.loads(out.read_text())
     assert data["format"] == cmp.COMPARE_FORMAT and data["bootstrap"] == {"resamples": 300, "seed": 0, "unit": "scene"}
-    assert f"B better in {data['b_better']} units, worse in {data['b_worse']}" in text
+    assert f"per scene B above A in {data['b_better']}, below in {data['b_worse']}" in text
+    assert f"p = {data['p_value']:.3g}" in text
     assert ev.cli(["compare", a, b, "--resamples", "300", "--json", str(out)]) == 0
-    assert json.loads(out.read_text()) == data, "the bootstrap is seeded"
+    assert json.loads(out.read_text()) == data, "the draws and swaps are seeded"
 
 
-def _changed_objects(data):
-    data["episode_results"][3]["objects"] = [["ycb/other", "target"]]
-    return data
+def _edit_record(i, **fields):
+    def change(d):
+        d["episode_results"][i].update(fields)
+        return d
+    return change
+
+
+def _drop_key(key):
+    def change(d):
+        del d[key]
+        return d
+    return change
+
+
+def _duplicate(d):
+    d["episode_results"].append(dict(d["episode_results"][0]))
+    return d
+
+
+def _mix(d):
+    d["episode_results"][0]["gripper"] = None
+    return d
+
+
+def _ada(d):
+    return result("adagrasp", FG_B["wsg_50"], SEEDS, grippers=("wsg_50", "pr2_gripper"))
 
 
 @pytest.mark.parametrize(
     "change, extra, needle",
     [
-        (lambda d: {**d, "scene": "multi"}, [], "scene: 'multi', but"),
-        (lambda d: {**d, "objects": "train"}, [], "objects: 'train', but"),
-        (_changed_objects, [], "gripper wsg_50).objects: not the objects of"),
+        (lambda d: {**d, "scene": "multi"}, [], "b.json: scene: 'multi', but"),
+        (lambda d: {**d, "objects": "train"}, [], "b.json: objects: 'train', but"),
+        (_drop_key("objects"), [], "b.json: objects: missing"),
+        (_edit_record(3, objects=[["ycb/other", "target"]]), [], "gripper wsg_50).objects: not the objects of"),
         (lambda d: result("fix-gripper", FG_B, [91, 92, 93, 94, 95]), [], "scene_seeds: no scene in common"),
         (lambda d: result("fix-gripper", {"pr2_gripper": FG_B["wsg_50"]}, SEEDS, grippers=("pr2_gripper",)), [],
          "per_gripper: no gripper in common"),
         (lambda d: {**d, "episode_results": []}, [], "episode_results: missing or empty"),
+        (_edit_record(2, attempts="5"), [], "episode_results[2]: scene_seed, successes and attempts must be integers"),
+        (_edit_record(2, successes=6), [], "episode_results[2]: successes 6, attempts 4"),
+        (_edit_record(1, attempts=0), [], "episode_results[1]: successes 0, attempts 0"),
+        (_duplicate, [], "gripper wsg_50, scene_seed 11: repeated"),
+        (_mix, [], "mixes adagrasp records (gripper null) with per-gripper ones"),
+        (_ada, [], "a.json: grippers ['panda_hand', 'wsg_50']: adagrasp in"),
         (lambda d: d, ["--gripper", "robotiq"], "--gripper robotiq: not among its grippers"),
         (lambda d: d, ["--resamples", "0"], "--resamples 0: expected >= 1"),
     ],
@@ -190,6 +281,16 @@ def test_bad_input_is_one_line(tmp_path, capsys, change, extra, needle):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and needle in err, err
     assert not out.exists()
+
+
+def test_objects_are_checked_in_every_record_of_both_files(tmp_path, capsys):
+    """A scene whose objects differ in A's second gripper is named in A, not blamed on B."""
+    a = result("fix-gripper", FG_A, SEEDS)
+    odd = next(r for r in a["episode_results"] if r["gripper"] == "wsg_50" and r["scene_seed"] == 12)
+    odd["objects"] = [["ycb/other", "target"]]
+    assert ev.cli(["compare", write(tmp_path, "a", a), write(tmp_path, "b", result("fix-gripper", FG_B, SEEDS))]) == 2
+    err = capsys.readouterr().err
+    assert "a.json: episode_results (scene_seed 12, gripper wsg_50).objects" in err
 
 
 def test_gripper_filter_needs_a_per_gripper_result(tmp_path, capsys):
