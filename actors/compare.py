@@ -55,6 +55,8 @@ class Side:
     """(G, E) int64 successful grasps of gripper row g in paired scene e."""
     attempts: np.ndarray
     """(G, E) int64 grasps of gripper row g in paired scene e (>= 1 each)."""
+    dropped: tuple[int, ...] = ()
+    """Scene seeds both files ran but with other objects, left out (``drop_mismatched``)."""
 
     @property
     def pooled(self) -> bool:
@@ -123,10 +125,11 @@ def _episodes(path: str, summary: dict) -> dict[tuple[str | None, int], dict]:
     return out
 
 
-def _side(path: str, summary: dict, episodes: dict, grippers: list[str | None], scenes: list[int]) -> Side:
+def _side(path: str, summary: dict, episodes: dict, grippers: list[str | None], scenes: list[int],
+          dropped: list[int]) -> Side:
     succ = np.array([[episodes[(g, s)]["successes"] for s in scenes] for g in grippers], dtype=np.int64)
     att = np.array([[episodes[(g, s)]["attempts"] for s in scenes] for g in grippers], dtype=np.int64)
-    return Side(path, summary, grippers, succ, att)
+    return Side(path, summary, grippers, succ, att, tuple(dropped))
 
 
 def _grippers(path: str, episodes: dict, only: list[str] | None) -> list[str | None]:
@@ -153,12 +156,14 @@ def _check_candidates(path_fix: str, grippers: list[str | None], path_ada: str, 
         )
 
 
-def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = None) -> tuple[Side, Side]:
+def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = None,
+         drop_mismatched: bool = False) -> tuple[Side, Side]:
     """Restrict results ``a`` and ``b`` to the scenes (and, both per-gripper, the grippers) they share.
 
-    ``only``: gripper names to keep on the per-gripper side(s) (None: all). Raises
-    :class:`EvaluationError` (one line naming the file and the key) when they are not the same
-    scenes or share none.
+    ``only``: gripper names to keep on the per-gripper side(s) (None: all). ``drop_mismatched``:
+    leave out a shared scene seed whose objects differ between records (recorded in
+    ``Side.dropped``) instead of stopping. Raises :class:`EvaluationError` (one line naming the
+    file and the key) when they are not the same scenes or share none.
     """
     for key in ("scene", "objects"):
         for path, data in ((path_a, a), (path_b, b)):
@@ -177,19 +182,28 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     elif gb != [None]:
         _check_candidates(path_b, gb, path_a, a, only)
     seeds_a = dict.fromkeys(s for _, s in ea)
-    common = [s for s in seeds_a if all((g, s) in ea for g in ga) and all((g, s) in eb for g in gb)]
-    if not common:
+    shared = [s for s in seeds_a if all((g, s) in ea for g in ga) and all((g, s) in eb for g in gb)]
+    if not shared:
         raise EvaluationError(f"{path_b}: scene_seeds: no scene in common with {path_a}")
-    for s in common:
+    common, dropped = [], []
+    for s in shared:
         reference = ea[(ga[0], s)]["objects"]
-        for path, episodes, grippers in ((path_a, ea, ga), (path_b, eb, gb)):
-            for g in grippers:
-                if episodes[(g, s)]["objects"] != reference:
-                    raise EvaluationError(
-                        f"{path}: episode_results (scene_seed {s}, gripper {g}).objects: not the objects of "
-                        f"{path_a}'s scene {s}, gripper {ga[0]} (another simulation or object set)"
-                    )
-    return _side(path_a, a, ea, ga, common), _side(path_b, b, eb, gb, common)
+        odd = [(path, g) for path, episodes, grippers in ((path_a, ea, ga), (path_b, eb, gb))
+               for g in grippers if episodes[(g, s)]["objects"] != reference]
+        if not odd:
+            common.append(s)
+        elif drop_mismatched:
+            dropped.append(s)
+        else:
+            path, g = odd[0]
+            raise EvaluationError(
+                f"{path}: episode_results (scene_seed {s}, gripper {g}).objects: not the objects of "
+                f"{path_a}'s scene {s}, gripper {ga[0]} (another simulation, object set or machine; "
+                "--drop-mismatched-scenes pairs the rest)"
+            )
+    if not common:
+        raise EvaluationError(f"{path_b}: episode_results: no shared scene has the same objects as in {path_a}")
+    return _side(path_a, a, ea, ga, common, dropped), _side(path_b, b, eb, gb, common, dropped)
 
 
 def _rates(successes: np.ndarray, attempts: np.ndarray, pooled: bool) -> np.ndarray:
@@ -264,6 +278,7 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
         "scene": sa.summary["scene"],
         "objects": sa.summary["objects"],
         "scenes": scenes,
+        "dropped_scene_seeds": list(sa.dropped),
         "a": side(sa, rate_a),
         "b": side(sb, rate_b),
         "b_better": better,
@@ -291,7 +306,8 @@ def report(c: dict) -> str:
     if c["p_value"] is not None:
         test = f"{c['test']}: p = {c['p_value']:.3g}"
     return "\n".join([
-        f"compare: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} paired scenes",
+        f"compare: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} paired scenes"
+        + (f" ({len(c['dropped_scene_seeds'])} shared seeds left out: other objects)" if c["dropped_scene_seeds"] else ""),
         side("A", c["a"]),
         side("B", c["b"]),
         f"  B - A: {c['rate_difference']:+.3f} (95% interval {lo:+.3f} to {hi:+.3f}, "
@@ -310,6 +326,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("b", metavar="B.json", help="result written by evaluate --json (compared against A)")
     ap.add_argument("--gripper", default=None, metavar="NAME[,NAME...]",
                     help="per-gripper results: keep only these grippers")
+    ap.add_argument("--drop-mismatched-scenes", action="store_true",
+                    help="leave out shared scene seeds whose objects differ (else: an error)")
     ap.add_argument("--resamples", type=int, default=BOOTSTRAP_RESAMPLES, help="bootstrap scene draws, and random swaps of the permutation test")
     ap.add_argument("--seed", type=int, default=0, help="seed of the generator of the draws and swaps")
     ap.add_argument("--json", default=None, help="write the comparison here")
@@ -322,7 +340,7 @@ def compare_cli(argv: list[str]) -> dict:
     if args.resamples < 1:
         raise EvaluationError(f"--resamples {args.resamples}: expected >= 1")
     only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
-    sa, sb = pair(args.a, read_result(args.a), args.b, read_result(args.b), only)
+    sa, sb = pair(args.a, read_result(args.a), args.b, read_result(args.b), only, args.drop_mismatched_scenes)
     if only is not None and sa.pooled and sb.pooled:
         raise EvaluationError(f"--gripper {args.gripper}: both results are adagrasp runs, which choose the gripper")
     result = compare(sa, sb, args.resamples, args.seed)

@@ -297,3 +297,21 @@ def test_gripper_filter_needs_a_per_gripper_result(tmp_path, capsys):
     a = write(tmp_path, "a", result("adagrasp", FG_A["wsg_50"], SEEDS))
     assert ev.cli(["compare", a, a, "--gripper", "wsg_50"]) == 2
     assert "both results are adagrasp runs" in capsys.readouterr().err
+
+
+def test_mismatched_scenes_can_be_left_out(tmp_path, capsys):
+    """A scene drawn with other objects (another machine's redraw) stops the comparison unless
+    --drop-mismatched-scenes, which pairs the rest and names the seeds it left out."""
+    b = _edit_record(3, objects=[["ycb/other", "target"]])(result("fix-gripper", FG_B, SEEDS))
+    assert b["episode_results"][3]["scene_seed"] == 14
+    paths = [write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS)), write(tmp_path, "b", b)]
+    assert ev.cli(["compare", *paths]) == 2
+    assert "--drop-mismatched-scenes pairs the rest" in capsys.readouterr().err
+    out = tmp_path / "cmp.json"
+    assert ev.cli(["compare", *paths, "--drop-mismatched-scenes", "--json", str(out)]) == 0
+    assert "(1 shared seeds left out: other objects)" in capsys.readouterr().out
+    data = json.loads(out.read_text())
+    kept = [0, 1, 2, 4]
+    assert data["scenes"] == 4 and data["dropped_scene_seeds"] == [14]
+    expected = result("fix-gripper", {g: [FG_B[g][i] for i in kept] for g in FG_B}, [SEEDS[i] for i in kept])
+    assert data["b"]["rate"] == pytest.approx(expected["rate"])
