@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from actors.evaluate import EvaluationError, _write_atomic, read_result, row_label
+from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_result, row_label
 
 BOOTSTRAP_RESAMPLES = 10_000
 """Scene resamples of the bootstrap interval."""
@@ -56,7 +56,9 @@ class Side:
     attempts: np.ndarray
     """(G, E) int64 grasps of gripper row g in paired scene e (>= 1 each)."""
     dropped: tuple[int, ...] = ()
-    """Scene seeds both files ran but with other objects, left out (``drop_mismatched``)."""
+    """Scene seeds both files ran whose objects differ between records, left out (``drop_mismatched``)."""
+    unpaired: int = 0
+    """Scene seeds of this file left out: not run by the other file, or not for every paired gripper, or dropped."""
 
     @property
     def pooled(self) -> bool:
@@ -113,9 +115,10 @@ def _episodes(path: str, summary: dict) -> dict[tuple[str | None, int], dict]:
             raise EvaluationError(f"{where}: scene_seed, successes and attempts must be integers, got {counts}")
         if not isinstance(r["gripper"], (str, type(None))) or not isinstance(r["objects"], list):
             raise EvaluationError(f"{where}: gripper must be a name or null and objects a list")
-        if not 0 <= r["successes"] <= r["attempts"] or r["attempts"] < 1:
-            raise EvaluationError(f"{where}: successes {r['successes']}, attempts {r['attempts']}: "
-                                  "expected 0 <= successes <= attempts and attempts >= 1")
+        if not 0 <= r["successes"] <= r["attempts"] or not 1 <= r["attempts"] < 2**31 or not 0 <= r["scene_seed"] < 2**63:
+            raise EvaluationError(f"{where}: scene_seed {r['scene_seed']}, successes {r['successes']}, attempts "
+                                  f"{r['attempts']}: expected 0 <= successes <= attempts, 1 <= attempts < 2^31 and "
+                                  "0 <= scene_seed < 2^63")
         key = (r["gripper"], r["scene_seed"])
         if key in out:
             raise EvaluationError(f"{where}: gripper {key[0]}, scene_seed {key[1]}: repeated")
@@ -129,7 +132,16 @@ def _side(path: str, summary: dict, episodes: dict, grippers: list[str | None], 
           dropped: list[int]) -> Side:
     succ = np.array([[episodes[(g, s)]["successes"] for s in scenes] for g in grippers], dtype=np.int64)
     att = np.array([[episodes[(g, s)]["attempts"] for s in scenes] for g in grippers], dtype=np.int64)
-    return Side(path, summary, grippers, succ, att, tuple(dropped))
+    unpaired = len({seed for _, seed in episodes} - set(scenes))
+    return Side(path, summary, grippers, succ, att, tuple(dropped), unpaired)
+
+
+def _candidates(path: str, summary: dict) -> list[str]:
+    """The ``gripper_names`` of a result: the grippers of its cell (``adagrasp``: its candidates)."""
+    names = summary.get("gripper_names")
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise EvaluationError(f"{path}: gripper_names: expected a non-empty list of gripper names, got {names!r}")
+    return names
 
 
 def _grippers(path: str, episodes: dict, only: list[str] | None) -> list[str | None]:
@@ -145,9 +157,7 @@ def _grippers(path: str, episodes: dict, only: list[str] | None) -> list[str | N
 def _check_candidates(path_fix: str, grippers: list[str | None], path_ada: str, ada: dict, only) -> None:
     """A per-gripper result against an ``adagrasp`` one: its grippers must be the candidates
     ``adagrasp`` chose among (all of them, unless ``--gripper`` keeps fewer)."""
-    candidates = ada.get("gripper_names")
-    if not isinstance(candidates, list):
-        raise EvaluationError(f"{path_ada}: gripper_names: missing")
+    candidates = _candidates(path_ada, ada)
     fine = set(grippers) <= set(candidates) if only else set(grippers) == set(candidates)
     if not fine:
         raise EvaluationError(
@@ -163,7 +173,11 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     ``only``: gripper names to keep on the per-gripper side(s) (None: all). ``drop_mismatched``:
     leave out a shared scene seed whose objects differ between records (recorded in
     ``Side.dropped``) instead of stopping. Raises :class:`EvaluationError` (one line naming the
-    file and the key) when they are not the same scenes or share none.
+    file and the key) when they are not the same scenes (scene kind, object set, or the objects
+    of a shared seed) or share none, share no gripper, when ``adagrasp`` chose among other
+    grippers than the per-gripper result ran, or on a malformed record. The object check compares
+    names and roles: necessary for the same scenes, not sufficient (objects placed elsewhere with
+    the same draw pass it).
     """
     for key in ("scene", "objects"):
         for path, data in ((path_a, a), (path_b, b)):
@@ -267,6 +281,8 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
             "checkpoint": s.summary.get("checkpoint"),
             "cameras": s.summary.get("cameras"),
             "grippers": s.grippers,
+            "candidates": _candidates(s.path, s.summary) if s.pooled else None,
+            "unpaired_scenes": s.unpaired,
             "rate": rate,
             "file_rate": s.summary["rate"],
             "successes": int(s.successes.sum()),
@@ -297,7 +313,9 @@ def report(c: dict) -> str:
     """Four lines of text for a comparison from :func:`compare`."""
 
     def side(tag: str, s: dict) -> str:
-        grippers = "adagrasp's choice" if s["grippers"] == [None] else ",".join(s["grippers"])
+        grippers = ",".join(s["grippers"]) if s["candidates"] is None else "choosing among " + ",".join(s["candidates"])
+        if s["unpaired_scenes"]:
+            grippers += f"; {s['unpaired_scenes']} of its scenes unpaired"
         return (f"  {tag} {s['row']}: rate {s['rate']:.3f} ({s['successes']}/{s['attempts']} grasps; "
                 f"{grippers}), {s['path']}")
 
@@ -339,6 +357,7 @@ def compare_cli(argv: list[str]) -> dict:
     args = _parser().parse_args(argv)
     if args.resamples < 1:
         raise EvaluationError(f"--resamples {args.resamples}: expected >= 1")
+    check_output_path("--json", args.json)
     only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
     sa, sb = pair(args.a, read_result(args.a), args.b, read_result(args.b), only, args.drop_mismatched_scenes)
     if only is not None and sa.pooled and sb.pooled:

@@ -695,8 +695,23 @@ def _write_atomic(path: str | Path, text: str) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def check_output_path(flag: str, path: str | None) -> None:
+    """Raise one line when ``path`` (an output of ``flag``) cannot be written, before any work is done."""
+    if path is None:
+        return
+    target = Path(path)
+    if target.is_dir():
+        raise EvaluationError(f"{flag} {path}: is a directory")
+    folder = next((p for p in [target.parent, *target.parent.parents] if p.exists()), Path("."))
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise EvaluationError(f"{flag} {path}: {folder} is not a writable directory")
 
 
 # --------------------------------------------------------------------------------------
@@ -750,6 +765,8 @@ def _table_parser() -> argparse.ArgumentParser:
 def evaluate(argv: list[str]) -> dict:
     """Parse ``argv``, run the evaluation, write --json / --md; returns the summary."""
     args = _parser().parse_args(argv)
+    check_output_path("--json", args.json)
+    check_output_path("--md", args.md)
     t0 = time.perf_counter()
     plan = make_plan(args)
     results = run_units(plan, plan.units(), actors=args.actors, address=args.address, quiet=args.quiet)
@@ -772,6 +789,7 @@ def evaluate(argv: list[str]) -> dict:
 def table(argv: list[str]) -> str:
     """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it."""
     args = _table_parser().parse_args(argv)
+    check_output_path("--md", args.md)
     markdown = table_markdown([(p, read_result(p)) for p in args.results])
     if args.md:
         _write_atomic(args.md, markdown)

@@ -264,8 +264,8 @@ def _ada(d):
          "per_gripper: no gripper in common"),
         (lambda d: {**d, "episode_results": []}, [], "episode_results: missing or empty"),
         (_edit_record(2, attempts="5"), [], "episode_results[2]: scene_seed, successes and attempts must be integers"),
-        (_edit_record(2, successes=6), [], "episode_results[2]: successes 6, attempts 4"),
-        (_edit_record(1, attempts=0), [], "episode_results[1]: successes 0, attempts 0"),
+        (_edit_record(2, successes=6), [], "episode_results[2]: scene_seed 13, successes 6, attempts 4"),
+        (_edit_record(1, attempts=0), [], "episode_results[1]: scene_seed 12, successes 0, attempts 0"),
         (_duplicate, [], "gripper wsg_50, scene_seed 11: repeated"),
         (_mix, [], "mixes adagrasp records (gripper null) with per-gripper ones"),
         (_ada, [], "a.json: grippers ['panda_hand', 'wsg_50']: adagrasp in"),
@@ -315,3 +315,57 @@ def test_mismatched_scenes_can_be_left_out(tmp_path, capsys):
     assert data["scenes"] == 4 and data["dropped_scene_seeds"] == [14]
     expected = result("fix-gripper", {g: [FG_B[g][i] for i in kept] for g in FG_B}, [SEEDS[i] for i in kept])
     assert data["b"]["rate"] == pytest.approx(expected["rate"])
+
+
+def test_ties_count_as_at_least_as_far_in_the_random_swaps():
+    """Three grippers with three attempts per scene make swapped differences that equal the
+    observed one up to rounding; they count as hits (the enumeration counts them too). 12,345
+    swaps: not a multiple of the 10,000 per batch."""
+    rng = random.Random(23)  # a draw where ties move the enumerated p from 0.74 to 0.88
+    seeds = list(range(300, 308))
+    names = ("wsg_50", "panda_hand", "pr2_gripper")
+    fa = {g: [(rng.randint(0, 3), 3) for _ in seeds] for g in names}
+    fb = {g: [(rng.randint(0, 3), 3) for _ in seeds] for g in names}
+    a, b = result("fix-gripper", fa, seeds, grippers=names), result("fix-gripper", fb, seeds, grippers=names)
+    c = cmp.compare(*cmp.pair("a", a, "b", b), resamples=12_345)
+    assert "12345 random swaps" in c["test"]
+    assert c["p_value"] == pytest.approx(brute_force_swap_p("fix-gripper", fa, fb, seeds), abs=0.02)
+
+
+def test_one_attempt_against_several_takes_the_random_swaps():
+    seeds = list(range(400, 408))
+    ta = [(1, 1), (0, 1), (1, 1), (1, 1), (0, 1), (1, 1), (0, 1), (1, 1)]
+    tb = [(2, 3), (1, 4), (1, 1), (3, 3), (0, 2), (1, 5), (1, 2), (2, 2)]
+    c = cmp.compare(*cmp.pair("a", result("adagrasp", ta, seeds), "b", result("adagrasp", tb, seeds)),
+                    resamples=30_000)
+    assert "random swaps" in c["test"]
+    assert c["p_value"] == pytest.approx(brute_force_swap_p("adagrasp", ta, tb, seeds), abs=0.015)
+
+
+def test_report_names_the_candidates_and_the_unpaired_scenes(tmp_path, capsys):
+    long = result("fix-gripper", {g: v + v for g, v in FG_A.items()}, SEEDS + [21, 22, 23, 24, 25])
+    ada = result("adagrasp", FG_B["wsg_50"], SEEDS)
+    assert ev.cli(["compare", write(tmp_path, "long", long), write(tmp_path, "ada", ada), "--resamples", "100"]) == 0
+    out = capsys.readouterr().out
+    assert "5 of its scenes unpaired" in out and "choosing among wsg_50,panda_hand" in out
+
+
+def test_output_errors_are_one_line_before_any_work(tmp_path, capsys):
+    a = write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS))
+    assert ev.cli(["compare", a, a, "--json", str(tmp_path)]) == 2
+    captured = capsys.readouterr()
+    assert f"--json {tmp_path}: is a directory" in captured.err and captured.out == ""
+    assert list(tmp_path.iterdir()) == [tmp_path / "a.json"]
+
+
+def test_all_scenes_mismatched_or_no_candidates_is_one_line(tmp_path, capsys):
+    b = result("fix-gripper", FG_B, SEEDS)
+    for r in b["episode_results"]:
+        r["objects"] = [["ycb/other", "target"]]
+    paths = [write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS)), write(tmp_path, "b", b)]
+    assert ev.cli(["compare", *paths, "--drop-mismatched-scenes"]) == 2
+    assert "b.json: episode_results: no shared scene has the same objects" in capsys.readouterr().err
+    ada = result("adagrasp", FG_B["wsg_50"], SEEDS)
+    del ada["gripper_names"]
+    assert ev.cli(["compare", paths[0], write(tmp_path, "ada", ada)]) == 2
+    assert "ada.json: gripper_names: expected a non-empty list" in capsys.readouterr().err

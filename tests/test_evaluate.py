@@ -290,6 +290,7 @@ def test_policy_variant_mismatch_is_one_line(small, tmp_path, capsys, policy, va
         (["--policy", "random", "--checkpoint", "x.pt"], "--checkpoint: the random policy takes no checkpoint"),
         (["--policy", "heuristic", "--cameras", "5"], "sim.cameras"),
         (["--policy", "heuristic", "--episodes", "0"], "--episodes"),
+        (["--policy", "heuristic", "--md", "/"], "--md /: is a directory"),
     ],
 )
 def test_bad_input_is_one_line(tmp_path, capsys, argv, needle):
