@@ -728,7 +728,8 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m launcher evaluate",
         description="Evaluate one policy on one (scene, objects, grippers) cell with the paper's protocol; "
-        "'evaluate table RESULT.json ... --md OUT' merges results into the paper's Table I.",
+        "'evaluate table RESULT.json ... --md OUT' merges results into the paper's Table I; "
+        "'evaluate compare A.json B.json' compares two results on the scenes they share.",
     )
     ap.add_argument("--checkpoint", default=None, help="model checkpoint (learned policies only)")
     ap.add_argument("--scene", choices=SCENE_KINDS, required=True)
