@@ -313,7 +313,10 @@ def report(c: dict) -> str:
     """Four lines of text for a comparison from :func:`compare`."""
 
     def side(tag: str, s: dict) -> str:
-        grippers = ",".join(s["grippers"]) if s["candidates"] is None else "choosing among " + ",".join(s["candidates"])
+        names = s["grippers"] if s["candidates"] is None else s["candidates"]
+        grippers = ",".join(names) if len(names) <= 6 else f"{len(names)} grippers"
+        if s["candidates"] is not None:
+            grippers = "choosing among " + grippers
         if s["unpaired_scenes"]:
             grippers += f"; {s['unpaired_scenes']} of its scenes unpaired"
         return (f"  {tag} {s['row']}: rate {s['rate']:.3f} ({s['successes']}/{s['attempts']} grasps; "
