@@ -39,6 +39,8 @@ BOOTSTRAP_RESAMPLES = 10_000
 """Scene resamples of the bootstrap interval."""
 COMPARE_FORMAT = "adagrasp-scale-comparison/1"
 """Value of the ``format`` key of a comparison JSON."""
+_RECORD_KEYS = ("gripper", "scene_seed", "successes", "attempts", "objects")
+"""Keys of an episode record that a comparison reads."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,13 @@ class Side:
         return self.grippers == [None]
 
 
+def _rates(successes: np.ndarray, attempts: np.ndarray, pooled: bool) -> np.ndarray:
+    """The table's rate from per-gripper sums: (R, G) successes and attempts -> (R,) rates."""
+    if pooled:
+        return successes.sum(axis=1) / attempts.sum(axis=1)
+    return (successes / attempts).mean(axis=1)
+
+
 def table_rate(side: Side, weights: np.ndarray) -> np.ndarray:
     """The table's rate of ``side`` for each row of ``weights``.
 
@@ -73,11 +82,7 @@ def table_rate(side: Side, weights: np.ndarray) -> np.ndarray:
     the paired scenes once). Returns (B,) float64 rates.
     """
     assert weights.ndim == 2 and weights.shape[1] == side.successes.shape[1], weights.shape
-    s = side.successes.astype(np.float64) @ weights.T
-    a = side.attempts.astype(np.float64) @ weights.T
-    if side.pooled:
-        return s.sum(axis=0) / a.sum(axis=0)
-    return (s / a).mean(axis=0)
+    return _rates(weights @ side.successes.T, weights @ side.attempts.T, side.pooled)
 
 
 def sign_flip_p(diffs: np.ndarray, scale: int = 1) -> float:
@@ -108,14 +113,15 @@ def _episodes(path: str, summary: dict) -> dict[tuple[str | None, int], dict]:
     out: dict[tuple[str | None, int], dict] = {}
     for i, r in enumerate(records):
         where = f"{path}: episode_results[{i}]"
-        if not isinstance(r, dict) or not all(k in r for k in ("gripper", "scene_seed", "successes", "attempts", "objects")):
+        if not isinstance(r, dict) or not all(k in r for k in _RECORD_KEYS):
             raise EvaluationError(f"{where}: needs gripper, scene_seed, successes, attempts and objects")
         counts = (r["scene_seed"], r["successes"], r["attempts"])
         if not all(isinstance(v, int) and not isinstance(v, bool) for v in counts):
             raise EvaluationError(f"{where}: scene_seed, successes and attempts must be integers, got {counts}")
         if not isinstance(r["gripper"], (str, type(None))) or not isinstance(r["objects"], list):
             raise EvaluationError(f"{where}: gripper must be a name or null and objects a list")
-        if not 0 <= r["successes"] <= r["attempts"] or not 1 <= r["attempts"] < 2**31 or not 0 <= r["scene_seed"] < 2**63:
+        in_range = 0 <= r["successes"] <= r["attempts"] and 1 <= r["attempts"] < 2**31 and 0 <= r["scene_seed"] < 2**63
+        if not in_range:
             raise EvaluationError(f"{where}: scene_seed {r['scene_seed']}, successes {r['successes']}, attempts "
                                   f"{r['attempts']}: expected 0 <= successes <= attempts, 1 <= attempts < 2^31 and "
                                   "0 <= scene_seed < 2^63")
@@ -220,13 +226,6 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     return _side(path_a, a, ea, ga, common, dropped), _side(path_b, b, eb, gb, common, dropped)
 
 
-def _rates(successes: np.ndarray, attempts: np.ndarray, pooled: bool) -> np.ndarray:
-    """The table's rate from per-gripper sums: (R, G) successes and attempts -> (R,) rates."""
-    if pooled:
-        return successes.sum(axis=1) / attempts.sum(axis=1)
-    return (successes / attempts).mean(axis=1)
-
-
 def swapped_differences(sa: Side, sb: Side, swaps: np.ndarray) -> np.ndarray:
     """Rate difference B - A after swapping A's and B's records of the scenes marked in each row of
     ``swaps`` ((R, E) 0/1); needs the same grippers on both sides. Returns (R,) float64."""
@@ -326,9 +325,10 @@ def report(c: dict) -> str:
     test = "no permutation test (a per-gripper and an adagrasp result are not exchangeable)"
     if c["p_value"] is not None:
         test = f"{c['test']}: p = {c['p_value']:.3g}"
+    dropped = c["dropped_scene_seeds"]
     return "\n".join([
         f"compare: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} paired scenes"
-        + (f" ({len(c['dropped_scene_seeds'])} shared seeds left out: other objects)" if c["dropped_scene_seeds"] else ""),
+        + (f" ({len(dropped)} shared seeds left out: other objects)" if dropped else ""),
         side("A", c["a"]),
         side("B", c["b"]),
         f"  B - A: {c['rate_difference']:+.3f} (95% interval {lo:+.3f} to {hi:+.3f}, "
@@ -349,7 +349,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="per-gripper results: keep only these grippers")
     ap.add_argument("--drop-mismatched-scenes", action="store_true",
                     help="leave out shared scene seeds whose objects differ (else: an error)")
-    ap.add_argument("--resamples", type=int, default=BOOTSTRAP_RESAMPLES, help="bootstrap scene draws, and random swaps of the permutation test")
+    ap.add_argument("--resamples", type=int, default=BOOTSTRAP_RESAMPLES,
+                    help="bootstrap scene draws, and random swaps of the permutation test")
     ap.add_argument("--seed", type=int, default=0, help="seed of the generator of the draws and swaps")
     ap.add_argument("--json", default=None, help="write the comparison here")
     return ap
