@@ -122,6 +122,15 @@ def resolve_checkpoint(path: str | Path) -> Path:
     return out
 
 
+def checkpoint_origin_file(path: str | Path) -> str:
+    """Where ``path`` (a file or ``model:NAME``) is, for a run's provenance record: a shipped model
+    as its place inside the package (the same on every machine), any other file as an absolute path."""
+    out = resolve_checkpoint(path).resolve()
+    if str(path).startswith(SHIPPED_PREFIX):
+        return out.relative_to(shipped_models_dir().parents[1]).as_posix()
+    return str(out)
+
+
 def read_checkpoint(path: str | Path) -> Checkpoint:
     """Read and check a checkpoint file (or ``model:NAME``, a shipped one) without building the model."""
     path = resolve_checkpoint(path)

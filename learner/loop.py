@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
-from common.checkpoint import initial_weights, read_checkpoint, resolve_checkpoint, save_checkpoint
+from common.checkpoint import checkpoint_origin_file, initial_weights, read_checkpoint, save_checkpoint
 from common.config import Config
 from common.policy import action_region
 from common.runtime import ray_init
@@ -96,7 +96,7 @@ class LearnerProcess:
                 self.learner.start_from(start.model_state)
                 self.init_source = {
                     "init_weights": cfg.learner.init_weights,
-                    "file": str(resolve_checkpoint(cfg.learner.init_weights).resolve()),
+                    "file": checkpoint_origin_file(cfg.learner.init_weights),
                     "step": start.step,
                     "version": start.version,
                 }

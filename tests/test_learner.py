@@ -280,3 +280,24 @@ def test_init_weights_path_is_made_absolute_and_checked_until_the_run_has_a_chec
     checkpoint_path(run_dir).unlink()
     with pytest.raises(CheckpointError, match="checkpoint file not found"):
         resolve(parse_args(["--resume", "--run-dir", "tuned"]))
+
+
+def test_fine_tuning_from_a_shipped_model_records_its_place_in_the_package(filled_replay, tmp_path, monkeypatch):
+    """A shipped source is recorded as assets/models/NAME/checkpoint.pt, not as this machine's path."""
+    import common.checkpoint as ck
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    models = tmp_path / "package" / "assets" / "models"
+    source = LearnerProcess(cfg, client._shards, str(tmp_path / "source"), seed=0, torch_threads=1)
+    source.checkpoint(epsilon=0.5, inserted=12)
+    (models / "tiny-net").mkdir(parents=True)
+    checkpoint_path(tmp_path / "source").rename(models / "tiny-net" / "checkpoint.pt")
+    monkeypatch.setattr(ck, "shipped_models_dir", lambda: models)
+    tuned_cfg = load_config("tiny", overrides=SMALL + ["learner.init_weights=model:tiny-net"])
+    tuned = LearnerProcess(tuned_cfg, client._shards, str(tmp_path / "tuned"), seed=0, torch_threads=1)
+    tuned.checkpoint(epsilon=0.5, inserted=12)
+    origin = ck.read_checkpoint(checkpoint_path(tmp_path / "tuned")).extra["init_weights"]
+    assert origin["init_weights"] == "model:tiny-net", origin
+    assert origin["file"] == "assets/models/tiny-net/checkpoint.pt", origin
+    assert str(tmp_path) not in str(origin)
