@@ -77,8 +77,9 @@ class LearnerProcess:
         ckpt = checkpoint_path(self.run_dir)
         self.resumed_from = None
         self.init_source: dict | None = None
-        """Where a fine-tuned run's first weights came from (learner.init_weights, resolved file,
-        its step and version); written into every checkpoint; None for a random start."""
+        """Where a fine-tuned run's first weights came from (learner.init_weights, the file: inside
+        the package for a shipped model, else absolute; its step and version); written into every
+        checkpoint; None for a random start."""
         if ckpt.is_file():
             c = read_checkpoint(ckpt)
             ls = dict(c.extra["learner"])
