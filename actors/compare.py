@@ -114,7 +114,7 @@ def _episodes(path: str, summary: dict) -> dict[tuple[str | None, int], dict]:
     for i, r in enumerate(records):
         where = f"{path}: episode_results[{i}]"
         if not isinstance(r, dict) or not all(k in r for k in _RECORD_KEYS):
-            raise EvaluationError(f"{where}: needs gripper, scene_seed, successes, attempts and objects")
+            raise EvaluationError(f"{where}: needs {', '.join(_RECORD_KEYS[:-1])} and {_RECORD_KEYS[-1]}")
         counts = (r["scene_seed"], r["successes"], r["attempts"])
         if not all(isinstance(v, int) and not isinstance(v, bool) for v in counts):
             raise EvaluationError(f"{where}: scene_seed, successes and attempts must be integers, got {counts}")

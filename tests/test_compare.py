@@ -243,6 +243,13 @@ def _duplicate(d):
     return d
 
 
+def _without_record_key(i, key):
+    def change(d):
+        del d["episode_results"][i][key]
+        return d
+    return change
+
+
 def _mix(d):
     d["episode_results"][0]["gripper"] = None
     return d
@@ -263,6 +270,8 @@ def _ada(d):
         (lambda d: result("fix-gripper", {"pr2_gripper": FG_B["wsg_50"]}, SEEDS, grippers=("pr2_gripper",)), [],
          "per_gripper: no gripper in common"),
         (lambda d: {**d, "episode_results": []}, [], "episode_results: missing or empty"),
+        (_without_record_key(2, "attempts"), [],
+         "episode_results[2]: needs gripper, scene_seed, successes, attempts and objects"),
         (_edit_record(2, attempts="5"), [], "episode_results[2]: scene_seed, successes and attempts must be integers"),
         (_edit_record(2, successes=6), [], "episode_results[2]: scene_seed 13, successes 6, attempts 4"),
         (_edit_record(1, attempts=0), [], "episode_results[1]: scene_seed 12, successes 0, attempts 0"),
