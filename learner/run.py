@@ -11,6 +11,7 @@ Run directory layout::
     RUN/checkpoints/latest.pt  model, optimiser, step, epsilon, config, replay position
     RUN/progress.jsonl         one JSON line per progress tick
     RUN/tb/                    TensorBoard logs
+    RUN/summary.json           written at exit; earlier parts' kept (see with_earlier_parts)
 """
 
 from __future__ import annotations
@@ -103,6 +104,33 @@ def cli(argv: list[str]) -> int:
             )
     finally:
         signal.signal(signal.SIGINT, previous)
+    summary = with_earlier_parts(run_dir / "summary.json", summary)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
     return 0
+
+
+def with_earlier_parts(path: Path, summary: dict) -> dict:
+    """``summary`` of the part of a run that just ended, with ``earlier_parts`` read from ``path``.
+
+    A resumed run writes ``summary.json`` again. Its ``trials``, ``learner_steps``,
+    ``learner_samples`` and ``weights_version`` count the whole run. Its ``episodes``,
+    ``weights_published``, ``actor_restarts`` and ``actor_wait_s`` count this part only, so
+    the earlier parts' summaries are carried over as ``earlier_parts`` (oldest first).
+    A part that was killed wrote no summary and has no entry. An unreadable file is
+    renamed to ``summary.unreadable-<time>.json``, with a one-line warning, and never
+    overwritten.
+    """
+    if not path.is_file():
+        return summary
+    try:
+        earlier = json.loads(path.read_text())
+        if not isinstance(earlier, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as e:
+        aside = path.with_name(f"summary.unreadable-{time.strftime('%Y%m%d-%H%M%S')}.json")
+        path.rename(aside)
+        print(f"warning: {path}: unreadable ({e}); kept as {aside.name}, not in earlier_parts", file=sys.stderr)
+        return summary
+    parts = earlier.pop("earlier_parts", [])
+    return {**summary, "earlier_parts": [*parts, earlier]}

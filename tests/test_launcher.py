@@ -19,7 +19,7 @@ import zarr
 
 from common.checkpoint import read_checkpoint
 from common.config import load_config
-from learner.run import cli
+from learner.run import cli, with_earlier_parts
 from replay.client import ReplayClient, open_local_shards
 from replay.schema import ATTR_KEY, SCHEMA_VERSION
 
@@ -113,6 +113,25 @@ def test_resume_requires_existing_run(tmp_path, capsys):
     assert rc == 2 and "config.yaml" in err
 
 
+def test_resumed_run_summary_keeps_the_earlier_parts(tmp_path, capsys):
+    path = tmp_path / "summary.json"
+    first = {"trials": 10, "episodes": 3, "weights_published": 2}
+    assert with_earlier_parts(path, first) == first, "a new run has no earlier parts"
+    path.write_text(json.dumps(first))
+    second = with_earlier_parts(path, {"trials": 25, "episodes": 4, "weights_published": 1})
+    assert second == {"trials": 25, "episodes": 4, "weights_published": 1, "earlier_parts": [first]}
+    path.write_text(json.dumps(second))
+    third = with_earlier_parts(path, {"trials": 30, "episodes": 1})
+    assert third["earlier_parts"] == [first, {"trials": 25, "episodes": 4, "weights_published": 1}]
+    path.write_text('{"trials": 3')  # a summary cut short
+    assert with_earlier_parts(path, {"trials": 31}) == {"trials": 31}
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and "unreadable" in err[0], err
+    aside = list(tmp_path.glob("summary.unreadable-*.json"))
+    assert len(aside) == 1 and aside[0].read_text() == '{"trials": 3', "the unreadable file is kept, not overwritten"
+    assert not path.exists()
+
+
 def _ray_worker_pids(name: str) -> list[int]:
     out = subprocess.run(["ps", "-eo", "pid,args"], capture_output=True, text=True).stdout
     return [int(line.split()[0]) for line in out.splitlines() if f"ray::{name}" in line]
@@ -180,3 +199,12 @@ def test_launcher_kill_then_resume(tmp_path):
     assert summary["trials"] >= committed + 10
     assert _committed(run_dir) >= committed + 10
     assert read_checkpoint(run_dir / "checkpoints" / "latest.pt").step >= step_before
+    assert "earlier_parts" not in summary, "the killed part wrote no summary"
+    again = subprocess.run(
+        [sys.executable, "-m", "launcher", "--resume", "--run-dir", str(run_dir), "--actors", "2",
+         "--max-trials", str(summary["trials"] + 5), "--quiet"],
+        cwd=ROOT, capture_output=True, text=True, timeout=900,
+    )
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    written = json.loads((run_dir / "summary.json").read_text())
+    assert written["earlier_parts"] == [summary] and written["trials"] >= summary["trials"] + 5
