@@ -41,11 +41,11 @@ import numpy as np
 import pybullet as p
 
 from common.config import SimConfig
+from common.files import atomic_write_text
 from common.geometry import Transform
 from common.gripper import (
     GripperModel,
     GripperSpec,
-    _atomic_write,
     aperture_from_points,
     joint_positions,
     scaled_urdf,
@@ -124,7 +124,7 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     for k, el in enumerate(links + joints + [mount]):
         robot.insert(k, el)
     ET.indent(robot)
-    _atomic_write(out, ET.tostring(robot, encoding="unicode"))
+    atomic_write_text(out, ET.tostring(robot, encoding="unicode"))
     return out
 
 

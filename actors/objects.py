@@ -53,6 +53,7 @@ from typing import Callable
 import numpy as np
 import yaml
 
+from common.files import atomic_write_text
 from common.gripper import cache_root
 
 log = logging.getLogger(__name__)
@@ -183,10 +184,7 @@ def _build_lock():
 
 
 def _write_json_atomic(path: Path, data) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps(data, indent=1, sort_keys=True))
 
 
 def _build_dir_atomic(final: Path, fill: Callable[[Path], None]) -> None:

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from common.files import atomic_write_text
 from common.geometry import Transform
 from common.gripper_formats import (
     MOVABLE_TYPES,
@@ -79,13 +80,6 @@ def cache_root() -> Path:
     import platformdirs
 
     return Path(platformdirs.user_cache_dir("adagrasp-scale"))
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 # --------------------------------------------------------------------------------------
@@ -305,7 +299,7 @@ def _processed_urdf(spec_path: Path, text: str, source: Path, cut_link: str, kee
     except FormatError as e:
         raise GripperSpecError(f"{spec_path}: source: {source.name}: {e}") from None
     ET.indent(robot)
-    _atomic_write(out, ET.tostring(robot, encoding="unicode"))
+    atomic_write_text(out, ET.tostring(robot, encoding="unicode"))
     return out
 
 
@@ -614,7 +608,7 @@ def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = F
                 link.append(v)
     robot = scale_robot(robot, scale)
     ET.indent(robot)
-    _atomic_write(out, ET.tostring(robot, encoding="unicode"))
+    atomic_write_text(out, ET.tostring(robot, encoding="unicode"))
     return out
 
 

@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
-from common.gripper import GripperSpec, _atomic_write, assets_dir, cache_root, check_kinematics, load_spec
+from common.files import atomic_write_text
+from common.gripper import GripperSpec, assets_dir, cache_root, check_kinematics, load_spec
 
 FAMILY_NAMES = ("parallel_jaw", "revolute", "three_finger", "underactuated")
 """Procedural family names; a procedural gripper is called ``<family>-<seed>``."""
@@ -343,7 +344,7 @@ def generate(family: str, seed: int) -> Generated:
     folder = cache_root() / "grippers" / "procedural" / f"{name}-{digest}"
     spec_path = folder / f"{name}.yaml"
     if not spec_path.is_file():
-        _atomic_write(folder / "gripper.urdf", urdf_text)
+        atomic_write_text(folder / "gripper.urdf", urdf_text)
         data = {
             "name": name,
             "split": "train",
@@ -357,11 +358,11 @@ def generate(family: str, seed: int) -> Generated:
             "params": dict(params, generator=family, seed=int(seed)),
             **spec_fields,
         }
-        _atomic_write(spec_path, yaml.safe_dump(data, sort_keys=False))
+        atomic_write_text(spec_path, yaml.safe_dump(data, sort_keys=False))
     spec = load_spec(spec_path)
     marker = folder / "kinematics.ok"
     if not marker.is_file():
         check_kinematics(spec)
-        _atomic_write(marker, "passed check_kinematics\n")
+        atomic_write_text(marker, "passed check_kinematics\n")
     return Generated(spec, params)
 

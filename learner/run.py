@@ -25,6 +25,7 @@ from pathlib import Path
 
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights
 from common.config import Config, ConfigError, load_config, save_config
+from common.files import atomic_write_text
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -104,8 +105,9 @@ def cli(argv: list[str]) -> int:
             )
     finally:
         signal.signal(signal.SIGINT, previous)
-    summary = with_earlier_parts(run_dir / "summary.json", summary)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    summary_file = run_dir / "summary.json"
+    summary = with_earlier_parts(summary_file, summary)
+    atomic_write_text(summary_file, json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
     return 0
 
