@@ -226,6 +226,34 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     return _side(path_a, a, ea, ga, common, dropped), _side(path_b, b, eb, gb, common, dropped)
 
 
+def scene_resamples(rng: np.random.Generator, resamples: int, scenes: int) -> np.ndarray:
+    """(resamples, scenes) float64: how often each scene is drawn in each bootstrap resample
+    (``scenes`` draws with replacement per row)."""
+    draws = rng.integers(0, scenes, size=(resamples, scenes))
+    weights = np.zeros((resamples, scenes))
+    np.add.at(weights, (np.arange(resamples)[:, None], draws), 1.0)
+    return weights
+
+
+def rate_interval(path: str, summary: dict, resamples: int = BOOTSTRAP_RESAMPLES,
+                  seed: int = 0) -> tuple[float, float, float]:
+    """The table rate of one result and its 95% interval over scene resamples.
+
+    The scenes are those with a record for every gripper of the result (all of them, for a
+    finished run); ``seed`` seeds the bootstrap draws. Returns (rate, low, high). Raises
+    :class:`EvaluationError` on a malformed record.
+    """
+    episodes = _episodes(path, summary)
+    grippers = _grippers(path, episodes, None)
+    scenes = [s for s in dict.fromkeys(s for _, s in episodes) if all((g, s) in episodes for g in grippers)]
+    if not scenes:
+        raise EvaluationError(f"{path}: episode_results: no scene has a record for every gripper")
+    side = _side(path, summary, episodes, grippers, scenes, [])
+    weights = scene_resamples(np.random.default_rng(seed), resamples, len(scenes))
+    low, high = np.percentile(table_rate(side, weights), [2.5, 97.5])
+    return float(table_rate(side, np.ones((1, len(scenes))))[0]), float(low), float(high)
+
+
 def swapped_differences(sa: Side, sb: Side, swaps: np.ndarray) -> np.ndarray:
     """Rate difference B - A after swapping A's and B's records of the scenes marked in each row of
     ``swaps`` ((R, E) 0/1); needs the same grippers on both sides. Returns (R,) float64."""
@@ -266,9 +294,7 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
     ones = np.ones((1, scenes))
     rate_a, rate_b = float(table_rate(sa, ones)[0]), float(table_rate(sb, ones)[0])
     rng = np.random.default_rng(seed)
-    draws = rng.integers(0, scenes, size=(resamples, scenes))
-    weights = np.zeros((resamples, scenes))
-    np.add.at(weights, (np.arange(resamples)[:, None], draws), 1.0)
+    weights = scene_resamples(rng, resamples, scenes)
     diffs = table_rate(sb, weights) - table_rate(sa, weights)
     low, high = np.percentile(diffs, [2.5, 97.5])
     p_value, test = permutation_p(sa, sb, resamples, rng)

@@ -378,3 +378,19 @@ def test_all_scenes_mismatched_or_no_candidates_is_one_line(tmp_path, capsys):
     del ada["gripper_names"]
     assert ev.cli(["compare", paths[0], write(tmp_path, "ada", ada)]) == 2
     assert "ada.json: gripper_names: expected a non-empty list" in capsys.readouterr().err
+
+
+def test_rate_interval_of_one_result():
+    """The rate of a result's complete scenes, with an interval that brackets it and is empty
+    when every scene is alike; a scene missing a gripper's record is left out."""
+    a = result("fix-gripper", FG_A, SEEDS)
+    rate, low, high = cmp.rate_interval("a", a, resamples=2000)
+    assert rate == pytest.approx(a["rate"]) and low < rate < high
+    same = result("fix-gripper", {g: [(2, 4)] * 5 for g in FG_A}, SEEDS)
+    assert cmp.rate_interval("s", same, resamples=200) == (0.5, 0.5, 0.5)
+    a["episode_results"] = [r for r in a["episode_results"] if (r["gripper"], r["scene_seed"]) != ("wsg_50", 13)]
+    four = result("fix-gripper", {g: [c for c, s in zip(FG_A[g], SEEDS) if s != 13] for g in FG_A},
+                  [s for s in SEEDS if s != 13])
+    assert cmp.rate_interval("a", a, resamples=200)[0] == pytest.approx(four["rate"])
+    ada = result("adagrasp", FG_A["wsg_50"], SEEDS)
+    assert cmp.rate_interval("p", ada, resamples=200)[0] == pytest.approx(6 / 22)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 
 from common.checkpoint import save_checkpoint
-from learner.curve import main, read_greedy, wilson
+from learner.curve import main, read_greedy, read_held_out, wilson
+from tests.test_compare import FG_A, FG_B, SEEDS, result
 from tests.test_network import small_model
 
 
@@ -45,3 +46,47 @@ def test_curve_errors_are_one_line(tmp_path, capsys):
     assert "scripted.json: checkpoint: missing" in err and "\n" not in err
     assert main([str(tmp_path / "nowhere"), "--out", str(tmp_path / "c.png")]) == 2
     assert "progress.jsonl: not found" in capsys.readouterr().err
+
+
+def test_held_out_results_are_lines_per_row_at_the_trials_their_checkpoints_saw(tmp_path):
+    """Evaluation results of a run's checkpoints: one line per row and scene seed, points at the
+    checkpoints' replay.inserted, rates with a scene-bootstrap interval; a checkpoint path from
+    another directory is found in RUN/checkpoints by its file name."""
+    run = tmp_path / "run"
+    run.mkdir()
+    lines = [{"time": t, "trials": 10 * t, "success_rate": 0.4, "epsilon": 0.2, "loss": 0.5} for t in range(10)]
+    (run / "progress.jsonl").write_text("".join(json.dumps(d) + "\n" for d in lines))
+    cfg, model = small_model(seed=1)
+    paths = []
+    for step, inserted, table, seed in ((3, 40, FG_A, 0), (7, 90, FG_B, 0), (7, 90, FG_A, 2)):
+        save_checkpoint(run / "checkpoints" / f"step-{step:07d}.pt", model, cfg, step=step,
+                        extra={"replay": {"inserted": inserted}})
+        data = result("fix-gripper", table, SEEDS)
+        data.update(seed=seed, checkpoint=f"../elsewhere/checkpoints/step-{step:07d}.pt")
+        paths.append(tmp_path / f"r{step}-{seed}.json")
+        paths[-1].write_text(json.dumps(data))
+    got = read_held_out([str(p) for p in paths[::-1]], run)
+    assert sorted(got) == ["fix-gripper, obstacle O_te/G_te, seed 0", "fix-gripper, obstacle O_te/G_te, seed 2"]
+    seed0 = got["fix-gripper, obstacle O_te/G_te, seed 0"]
+    assert [(d["inserted"], d["step"]) for d in seed0] == [(40, 3), (90, 7)]
+    assert [d["rate"] for d in seed0] == [result("fix-gripper", t, SEEDS)["rate"] for t in (FG_A, FG_B)]
+    assert all(d["low"] <= d["rate"] <= d["high"] and d["high"] > d["low"] for d in seed0)
+    out = tmp_path / "curve.png"
+    assert main([str(run), "--out", str(out), "--held-out", *map(str, paths)]) == 0
+    assert out.stat().st_size > 10_000
+
+
+def test_held_out_errors_name_the_file(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "progress.jsonl").write_text(json.dumps({"trials": 1, "success_rate": 0, "epsilon": 1, "loss": 1}) + "\n")
+    scripted = tmp_path / "heuristic.json"
+    scripted.write_text(json.dumps(result("heuristic", FG_A, SEEDS)))
+    assert main([str(run), "--out", str(tmp_path / "c.png"), "--held-out", str(scripted)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "heuristic.json: checkpoint: missing" in err and "\n" not in err
+    lost = tmp_path / "lost.json"
+    lost.write_text(json.dumps({**result("fix-gripper", FG_A, SEEDS), "checkpoint": "gone/step-0000009.pt"}))
+    assert main([str(run), "--out", str(tmp_path / "c.png"), "--held-out", str(lost)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "lost.json: checkpoint: gone/step-0000009.pt not found" in err and "\n" not in err
