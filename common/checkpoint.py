@@ -220,6 +220,19 @@ NETWORK_KEYS = (
 """Config keys that fix what a network's weights mean; they must agree to start from a checkpoint."""
 
 
+def network_difference(mine: Config, theirs: Config) -> tuple[str, object, object] | None:
+    """The first of :data:`NETWORK_KEYS` whose value differs between two configs, as (key, value
+    in ``mine``, value in ``theirs``); None when the two build the same network."""
+    a_all, b_all = to_dict(mine), to_dict(theirs)
+    for key in NETWORK_KEYS:
+        a, b = a_all, b_all
+        for part in key.split("."):
+            a, b = a[part], b[part]
+        if a != b:
+            return key, a, b
+    return None
+
+
 def initial_weights(cfg: Config) -> Checkpoint | None:
     """The checkpoint ``cfg.learner.init_weights`` names (a path or ``model:NAME``), its weights
     checked against ``cfg``'s network; None when it is "".
@@ -235,13 +248,10 @@ def initial_weights(cfg: Config) -> Checkpoint | None:
     except CheckpointError as e:
         raise CheckpointError(f"learner.init_weights: {e}") from None
     path = resolve_checkpoint(source)
-    mine, theirs = to_dict(cfg), to_dict(ckpt.cfg)
-    for key in NETWORK_KEYS:
-        a, b = mine, theirs
-        for part in key.split("."):
-            a, b = a[part], b[part]
-        if a != b:
-            raise CheckpointError(f"{path}: learner.init_weights: {key} is {b!r} there but {a!r} in this run")
+    differ = network_difference(cfg, ckpt.cfg)
+    if differ:
+        key, a, b = differ
+        raise CheckpointError(f"{path}: learner.init_weights: {key} is {b!r} there but {a!r} in this run")
     try:
         with torch.random.fork_rng():  # the trial build leaves torch's global generator as it was
             build_model(cfg).load_state_dict(ckpt.model_state)
