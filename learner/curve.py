@@ -145,6 +145,7 @@ def plot(run: Path, out: Path, greedy: list[dict], title: str | None = None,
                 ax.annotate(f"{r:.2f}", (x, r), textcoords="offset points", xytext=(4, 6), fontsize=7)
         ax.set_xlabel("trials collected")
         ax.set_ylabel("held-out rate, 95% CI over scenes")
+        ax.set_xlim(axes[0].get_xlim())
         ax.set_ylim(0, 1)
         ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(title or f"{run}", fontsize=9)
