@@ -24,7 +24,6 @@ import argparse
 import sys
 from pathlib import Path
 
-
 from common.checkpoint import CheckpointError, load_checkpoint, network_difference, read_checkpoint, save_checkpoint
 
 KEPT_EXTRA = ("replay", "init_weights")
@@ -48,7 +47,7 @@ def average_checkpoints(paths: list[str | Path], out: str | Path) -> Path:
             raise CheckpointError(f"{path}: config: {key} is {b!r} there but {a!r} in {paths[0]}")
         if set(ckpt.model_state) != set(sums):
             odd = sorted(set(ckpt.model_state) ^ set(sums))[0]
-            raise CheckpointError(f"{path}: model: tensor {odd} is in one of it and {paths[0]} only")
+            raise CheckpointError(f"{path}: model: tensor {odd} is not in both it and {paths[0]}")
         for k, v in ckpt.model_state.items():
             if v.shape != sums[k].shape or v.is_floating_point() != sums[k].is_floating_point():
                 raise CheckpointError(f"{path}: model: {k} is {tuple(v.shape)} {v.dtype}, "
