@@ -73,3 +73,18 @@ def test_average_refuses_unlike_checkpoints_in_one_line(tmp_path, capsys):
     assert not out.exists()
     with pytest.raises(ValueError, match="checkpoint file not found"):
         average_checkpoints([a, tmp_path / "gone.pt"], out)
+
+
+def test_average_refuses_a_missing_or_reshaped_tensor(tmp_path):
+    a = _snapshot(tmp_path, 0, 10, 20)
+    state = torch.load(a, weights_only=True)
+    key = next(k for k, v in state["model"].items() if v.is_floating_point() and v.dim() > 1)
+    state["model"][key] = state["model"][key][:1]
+    torch.save(state, tmp_path / "reshaped.pt")
+    with pytest.raises(ValueError, match=f"reshaped.pt: model: {key} is"):
+        average_checkpoints([a, tmp_path / "reshaped.pt"], tmp_path / "avg.pt")
+    del state["model"][key]
+    torch.save(state, tmp_path / "missing.pt")
+    with pytest.raises(ValueError, match=f"missing.pt: model: tensor {key} is not in both"):
+        average_checkpoints([a, tmp_path / "missing.pt"], tmp_path / "avg.pt")
+    assert not (tmp_path / "avg.pt").exists()
