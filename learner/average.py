@@ -36,7 +36,7 @@ def average_checkpoints(paths: list[str | Path], out: str | Path) -> Path:
         raise ValueError(f"checkpoints: {len(paths)} given, at least two are needed to average")
     if len({str(p) for p in paths}) != len(paths):
         raise ValueError("checkpoints: a file is named twice (it would weigh double)")
-    first = read_checkpoint(paths[0])
+    model, first = load_checkpoint(paths[0])  # the network the average is loaded into
     sums = {k: v.double() if v.is_floating_point() else v for k, v in first.model_state.items()}
     origin = [first]
     for path in paths[1:]:
@@ -55,7 +55,6 @@ def average_checkpoints(paths: list[str | Path], out: str | Path) -> Path:
             sums[k] = sums[k] + v.double() if v.is_floating_point() else v
         origin.append(ckpt)
     last = origin[-1]
-    model, _ = load_checkpoint(paths[-1])
     dtypes = {k: v.dtype for k, v in last.model_state.items()}
     model.set_weights({k: (v / len(paths)).to(dtypes[k]) if v.is_floating_point() else v for k, v in sums.items()},
                       last.version)
