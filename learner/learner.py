@@ -189,13 +189,17 @@ class Learner:
 
     def load_state_dict(self, state: dict) -> None:
         """Inverse of :meth:`state_dict`. Without a stored average (a run resumed with averaging
-        newly switched on) the average restarts from the loaded weights."""
+        newly switched on) the average restarts from the loaded weights. The learning rate is this
+        learner's ``learner.lr``, not the stored one: a run resumed with ``--set learner.lr=...``
+        trains at the new rate (Adam's moment estimates are kept)."""
         self.model.load_state_dict(state["model"])
         if self.average is not None:
             stored = state.get("average")
             self.average.load_state_dict(state["model"] if stored is None else stored)
             self.average_updates = int(state.get("average_updates", 0)) if stored is not None else 0
         self.optimizer.load_state_dict(state["optimizer"])
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.cfg.learner.lr
         self.stats.steps = int(state["steps"])
         self.stats.samples = int(state["samples"])
         self.stats.version = int(state["version"])

@@ -1,5 +1,7 @@
 """Learner: rate limiting, a real training step on synthetic trials, score write-back, save/restore."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -170,6 +172,28 @@ def test_weight_average_survives_checkpoint_resume_and_export(filled_replay, tmp
     shipped = read_checkpoint(export_model(run, "avg", dest=tmp_path / "models") / "checkpoint.pt")
     assert "trained_model" not in shipped.extra["learner"] and shipped.optimizer is None
     assert all(torch.equal(shipped.model_state[k], average[k]) for k in average)
+
+
+def test_resume_trains_at_the_configured_learning_rate(filled_replay, tmp_path):
+    """A run resumed with a new learner.lr trains at it: the optimiser state in latest.pt keeps
+    Adam's moments but not the old rate."""
+    from learner.loop import LearnerProcess
+
+    cfg, client = filled_replay
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    proc.learner.train(2)
+    proc.checkpoint(epsilon=0.5, inserted=12, snapshot=False)
+    moments = {k: v["exp_avg"].clone() for k, v in proc.learner.optimizer.state_dict()["state"].items()}
+    lowered = copy.deepcopy(cfg)
+    lowered.learner.lr = cfg.learner.lr / 5
+    resumed = LearnerProcess(lowered, client._shards, str(run), seed=0, torch_threads=1)
+    groups = resumed.learner.optimizer.param_groups
+    assert [g["lr"] for g in groups] == [lowered.learner.lr] * len(groups)
+    state = resumed.learner.optimizer.state_dict()["state"]
+    assert all(torch.equal(state[k]["exp_avg"], m) for k, m in moments.items())
+    same = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    assert [g["lr"] for g in same.learner.optimizer.param_groups] == [cfg.learner.lr] * len(groups)
 
 
 def test_bf16_precision_matches_fp32_loss_and_keeps_float32_weights(filled_replay):
