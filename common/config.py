@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.resources
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -420,6 +421,10 @@ _RANGES: dict[str, tuple[float, float]] = {
 }
 
 
+_YAML12_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?")
+"""A YAML 1.2 core-schema number, finite (no .inf / .nan)."""
+
+
 def _check_value(name: str, value: Any, source: str) -> None:
     if name in _CHOICES and value not in _CHOICES[name]:
         raise ConfigError(f"{source}: {name}: expected one of {list(_CHOICES[name])}, got {value!r}")
@@ -433,6 +438,9 @@ def _coerce(name: str, tp: Any, value: Any, source: str) -> Any:
     """Convert a YAML value to the annotated type, or raise ConfigError naming source and key."""
     origin = typing.get_origin(tp)
     if tp is float:
+        if isinstance(value, str) and _YAML12_FLOAT.fullmatch(value):
+            # PyYAML reads YAML 1.1, where 1e-4 (no dot) is a string; YAML 1.2 makes it a float.
+            value = float(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{source}: {name}: expected a number, got {value!r}")
         return float(value)

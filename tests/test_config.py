@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 import common.config as config_module
-from common.config import Config, ConfigError, from_dict, load_config, to_dict
+from common.config import Config, ConfigError, from_dict, load_config, save_config, to_dict
 
 CONFIG_NAMES = sorted(
     p.stem
@@ -44,3 +44,20 @@ def test_unknown_key_is_one_line_naming_it():
     with pytest.raises(ConfigError) as e:
         load_config("default", overrides=["learner.init_weight=model:x"])
     assert "\n" not in str(e.value) and "learner.init_weight" in str(e.value)
+
+
+def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
+    """PyYAML reads YAML 1.1, where 1e-4 is a string; in --set and in YAML files it is the number
+    1e-4 (YAML 1.2), and the saved config reads back the same. Words stay errors."""
+    assert load_config("default", overrides=["learner.lr=1e-4"]).learner.lr == 1e-4
+    f = tmp_path / "exp.yaml"
+    f.write_text("learner:\n  lr: 2E-5\n  ema_decay: 9.99e-1\n")
+    cfg = load_config(f)
+    assert (cfg.learner.lr, cfg.learner.ema_decay) == (2e-5, 0.999)
+    save_config(cfg, tmp_path / "saved.yaml")
+    assert load_config(tmp_path / "saved.yaml").learner.lr == 2e-5
+    for bad in ("learner.lr=fast", "learner.lr=1e-4x", "learner.lr=1e"):
+        with pytest.raises(ConfigError, match=r"^--set: learner\.lr: expected a number, got '"):
+            load_config("default", overrides=[bad])
+    with pytest.raises(ConfigError, match=r"^--set: learner\.lr: expected a value in \["):
+        load_config("default", overrides=["learner.lr=.nan"])
