@@ -127,8 +127,25 @@ def checkpoint_origin_file(path: str | Path) -> str:
     as its place inside the package (the same on every machine), any other file as an absolute path."""
     out = resolve_checkpoint(path).resolve()
     if str(path).startswith(SHIPPED_PREFIX):
-        return out.relative_to(shipped_models_dir().parents[1]).as_posix()
+        return _package_place(out)
     return str(out)
+
+
+def _package_place(path: Path) -> str:
+    """``path`` (inside assets/models) relative to the package root, e.g. assets/models/NAME/checkpoint.pt."""
+    return path.relative_to(shipped_models_dir().parents[1]).as_posix()
+
+
+def portable_init_source(record: dict | None) -> dict | None:
+    """A fine-tuning provenance record (``init_weights``, ``file``, ``step``, ``version``) whose
+    shipped source (``model:NAME``) is named by its place in the package. Records written before
+    that rule, and carried on by ``--resume``, hold the writing machine's absolute path; the name
+    alone fixes the place, whether or not the model is still shipped. Other records are returned
+    unchanged; None stays None."""
+    if not record or not str(record.get("init_weights", "")).startswith(SHIPPED_PREFIX):
+        return record
+    name = str(record["init_weights"])[len(SHIPPED_PREFIX):]
+    return {**record, "file": _package_place(shipped_models_dir() / name / "checkpoint.pt")}
 
 
 def read_checkpoint(path: str | Path) -> Checkpoint:

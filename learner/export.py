@@ -22,7 +22,13 @@ import shutil
 import sys
 from pathlib import Path
 
-from common.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, shipped_models_dir
+from common.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    portable_init_source,
+    save_checkpoint,
+    shipped_models_dir,
+)
 from common.config import save_config
 
 RUN_LOGS = ("progress.jsonl", "summary.json", "history.json")
@@ -47,6 +53,8 @@ def export_model(run: str | Path, name: str, checkpoint: str | Path | None = Non
     extra = dict(ckpt.extra)
     if isinstance(extra.get("learner"), dict):
         extra["learner"] = {k: v for k, v in extra["learner"].items() if k != "trained_model"}
+    if "init_weights" in extra:
+        extra["init_weights"] = portable_init_source(extra["init_weights"])
     save_checkpoint(tmp / "checkpoint.pt", model, ckpt.cfg, step=ckpt.step, version=ckpt.version,
                     epsilon=ckpt.epsilon, optimizer=None, extra=extra)
     save_config(ckpt.cfg, tmp / "config.yaml")

@@ -29,7 +29,13 @@ import numpy as np
 import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
-from common.checkpoint import checkpoint_origin_file, initial_weights, read_checkpoint, save_checkpoint
+from common.checkpoint import (
+    checkpoint_origin_file,
+    initial_weights,
+    portable_init_source,
+    read_checkpoint,
+    save_checkpoint,
+)
 from common.config import Config
 from common.policy import action_region
 from common.runtime import ray_init
@@ -90,7 +96,7 @@ class LearnerProcess:
                 "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
             })
             self.resumed_from = c.step
-            self.init_source = c.extra.get("init_weights")
+            self.init_source = portable_init_source(c.extra.get("init_weights"))
         else:
             start = initial_weights(cfg)
             if start is not None:

@@ -325,3 +325,27 @@ def test_fine_tuning_from_a_shipped_model_records_its_place_in_the_package(fille
     assert origin["init_weights"] == "model:tiny-net", origin
     assert origin["file"] == "assets/models/tiny-net/checkpoint.pt", origin
     assert str(tmp_path) not in str(origin)
+
+
+def test_resume_and_export_rewrite_an_absolute_record_of_a_shipped_source(filled_replay, tmp_path, monkeypatch):
+    """A run fine-tuned from model:NAME before its record named the package place holds this
+    machine's absolute path; resuming it and exporting it both write assets/models/NAME/checkpoint.pt."""
+    import common.checkpoint as ck
+    from learner.export import export_model
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    monkeypatch.setattr(ck, "shipped_models_dir", lambda: tmp_path / "package" / "assets" / "models")
+    run = tmp_path / "run"
+    old = {"init_weights": "model:gone-net", "file": str(tmp_path / "elsewhere" / "checkpoint.pt"), "step": 7, "version": 3}
+    first = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    first.init_source = dict(old)
+    first.checkpoint(epsilon=0.5, inserted=12)
+    assert ck.read_checkpoint(checkpoint_path(run)).extra["init_weights"] == old
+    shipped = ck.read_checkpoint(export_model(run, "exported", dest=tmp_path / "out") / "checkpoint.pt")
+    resumed = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    resumed.checkpoint(epsilon=0.5, inserted=12)
+    for record in (shipped.extra["init_weights"], ck.read_checkpoint(checkpoint_path(run)).extra["init_weights"]):
+        assert record == {**old, "file": "assets/models/gone-net/checkpoint.pt"}, record
+    local = {"init_weights": str(tmp_path / "a.pt"), "file": str(tmp_path / "a.pt"), "step": 1, "version": 1}
+    assert ck.portable_init_source(local) == local and ck.portable_init_source(None) is None
