@@ -151,7 +151,7 @@ def test_weight_average_is_published_and_follows_the_trained_weights(filled_repl
 
 
 def test_weight_average_survives_checkpoint_resume_and_export(filled_replay, tmp_path):
-    from common.checkpoint import read_checkpoint
+    from common.checkpoint import CheckpointError, read_checkpoint
     from learner.export import export_model
     from learner.loop import LearnerProcess, checkpoint_path
 
@@ -172,6 +172,18 @@ def test_weight_average_survives_checkpoint_resume_and_export(filled_replay, tmp
     shipped = read_checkpoint(export_model(run, "avg", dest=tmp_path / "models") / "checkpoint.pt")
     assert "trained_model" not in shipped.extra["learner"] and shipped.optimizer is None
     assert all(torch.equal(shipped.model_state[k], average[k]) for k in average)
+    trained = proc.learner.model.state_dict()
+    assert any(not torch.equal(trained[k], average[k]) for k in average if average[k].is_floating_point())
+    raw = read_checkpoint(export_model(run, "raw", dest=tmp_path / "models", trained_weights=True) / "checkpoint.pt")
+    assert all(torch.equal(raw.model_state[k], trained[k]) for k in trained)
+    assert raw.extra["exported_weights"] == "trained" and "trained_model" not in raw.extra["learner"]
+    assert "exported_weights" not in shipped.extra
+    plain = tmp_path / "plain"
+    LearnerProcess(load_config("tiny", overrides=SMALL), client._shards, str(plain), seed=0,
+                   torch_threads=1).checkpoint(epsilon=0.5, inserted=12)
+    with pytest.raises(CheckpointError, match=r"latest\.pt: learner\.trained_model: not present"):
+        export_model(plain, "raw2", dest=tmp_path / "models", trained_weights=True)
+    assert not (tmp_path / "models" / "raw2").exists()
 
 
 def test_resume_trains_at_the_configured_learning_rate(filled_replay, tmp_path):
