@@ -19,6 +19,12 @@ scene is the unit throughout: the grippers and attempts of one scene stay togeth
   per-gripper result against an ``adagrasp`` one has no swap (one chooses among the grippers the
   other runs one by one): the interval alone decides.
 
+- **Pooled seeds** (``--also A2.json B2.json``, repeatable): results of the same two rows on
+  other scenes (another ``--seed``) are paired the same way and their scenes joined to the
+  first pair's, so one interval and one test cover every scene. The scenes of different pairs
+  must differ (no scene seed twice), and each side must be the same row, model, cameras and
+  grippers in every pair.
+
 The scenes must be the same scenes: the same scene kind and object set, and for every shared
 scene seed the same objects in the same roles in every record of both files; an ``adagrasp``
 result compared with a per-gripper one must choose among that result's grippers. Otherwise the
@@ -61,6 +67,10 @@ class Side:
     """Scene seeds both files ran whose objects differ between records, left out (``drop_mismatched``)."""
     unpaired: int = 0
     """Scene seeds of this file left out: not run by the other file, or not for every paired gripper, or dropped."""
+    parts: tuple[tuple[str, dict], ...] = ()
+    """(path, result JSON) of each file pooled into this side (:func:`pool`); () for one file."""
+    scene_seeds: tuple[int, ...] = ()
+    """(E,) the scene seed of each paired scene (column of the arrays)."""
 
     @property
     def pooled(self) -> bool:
@@ -139,7 +149,41 @@ def _side(path: str, summary: dict, episodes: dict, grippers: list[str | None], 
     succ = np.array([[episodes[(g, s)]["successes"] for s in scenes] for g in grippers], dtype=np.int64)
     att = np.array([[episodes[(g, s)]["attempts"] for s in scenes] for g in grippers], dtype=np.int64)
     unpaired = len({seed for _, seed in episodes} - set(scenes))
-    return Side(path, summary, grippers, succ, att, tuple(dropped), unpaired)
+    return Side(path, summary, grippers, succ, att, tuple(dropped), unpaired, scene_seeds=tuple(scenes))
+
+
+POOL_KEYS = ("scene", "objects", "policy", "checkpoint", "cameras", "calibration")
+"""Result keys that must agree between the files pooled into one side."""
+
+
+def pool(sides: list[Side]) -> Side:
+    """One side from the paired sides of several results of one row (other scene seeds): their
+    scenes side by side. Raises :class:`EvaluationError` (one line naming the file and the key)
+    when the files are not the same row, model, cameras or grippers, or share a scene seed."""
+    first = sides[0]
+    if len(sides) == 1:
+        return first
+    seen: dict[int, str] = {}
+    for s in sides:
+        for key in POOL_KEYS:
+            if s.summary.get(key) != first.summary.get(key):
+                raise EvaluationError(f"{s.path}: {key}: {s.summary.get(key)!r}, but {first.path} has "
+                                      f"{first.summary.get(key)!r}: only results of one row pool")
+        if s.grippers != first.grippers:
+            raise EvaluationError(f"{s.path}: grippers {s.grippers}: {first.path} pairs {first.grippers}")
+        for seed in s.scene_seeds:
+            if seed in seen:
+                raise EvaluationError(f"{s.path}: scene_seed {seed}: also in {seen[seed]} (pool other scenes, "
+                                      "e.g. another --seed)")
+            seen[seed] = s.path
+    return Side(
+        path=" + ".join(s.path for s in sides), summary=first.summary, grippers=first.grippers,
+        successes=np.concatenate([s.successes for s in sides], axis=1),
+        attempts=np.concatenate([s.attempts for s in sides], axis=1),
+        dropped=tuple(d for s in sides for d in s.dropped), unpaired=sum(s.unpaired for s in sides),
+        parts=tuple((s.path, s.summary) for s in sides),
+        scene_seeds=tuple(seed for s in sides for seed in s.scene_seeds),
+    )
 
 
 def _candidates(path: str, summary: dict) -> list[str]:
@@ -309,7 +353,7 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
             "candidates": _candidates(s.path, s.summary) if s.pooled else None,
             "unpaired_scenes": s.unpaired,
             "rate": rate,
-            "file_rate": s.summary["rate"],
+            "file_rate": [d["rate"] for _, d in s.parts] if s.parts else s.summary["rate"],
             "successes": int(s.successes.sum()),
             "attempts": int(s.attempts.sum()),
         }
@@ -371,6 +415,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("a", metavar="A.json", help="result written by evaluate --json (the baseline)")
     ap.add_argument("b", metavar="B.json", help="result written by evaluate --json (compared against A)")
+    ap.add_argument("--also", nargs=2, action="append", default=[], metavar=("A2.json", "B2.json"),
+                    help="the same two rows on other scenes (another --seed), pooled with A and B; repeatable")
     ap.add_argument("--gripper", default=None, metavar="NAME[,NAME...]",
                     help="per-gripper results: keep only these grippers")
     ap.add_argument("--drop-mismatched-scenes", action="store_true",
@@ -389,7 +435,9 @@ def compare_cli(argv: list[str]) -> dict:
         raise EvaluationError(f"--resamples {args.resamples}: expected >= 1")
     check_output_path("--json", args.json)
     only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
-    sa, sb = pair(args.a, read_result(args.a), args.b, read_result(args.b), only, args.drop_mismatched_scenes)
+    pairs = [pair(a, read_result(a), b, read_result(b), only, args.drop_mismatched_scenes)
+             for a, b in [(args.a, args.b), *args.also]]
+    sa, sb = pool([p[0] for p in pairs]), pool([p[1] for p in pairs])
     if only is not None and sa.pooled and sb.pooled:
         raise EvaluationError(f"--gripper {args.gripper}: both results are adagrasp runs, which choose the gripper")
     result = compare(sa, sb, args.resamples, args.seed)

@@ -394,3 +394,45 @@ def test_rate_interval_of_one_result():
     assert cmp.rate_interval("a", a, resamples=200)[0] == pytest.approx(four["rate"])
     ada = result("adagrasp", FG_A["wsg_50"], SEEDS)
     assert cmp.rate_interval("p", ada, resamples=200)[0] == pytest.approx(6 / 22)
+
+
+def _split(table, cut):
+    """A per-gripper table's first ``cut`` scenes and the rest."""
+    return {g: cells[:cut] for g, cells in table.items()}, {g: cells[cut:] for g, cells in table.items()}
+
+
+def test_pooled_seeds_equal_one_result_of_all_their_scenes(tmp_path, capsys):
+    """Two results per row on other scenes, pooled with --also, give what one result holding every
+    scene gives: the rates, the interval (the same draws), the tally and the p-value."""
+    files = {}
+    for name, table in (("a", FG_A), ("b", FG_B)):
+        first, rest = _split(table, 3)
+        files[name] = write(tmp_path, name, result("fix-gripper", table, SEEDS))
+        files[name + "1"] = write(tmp_path, name + "1", result("fix-gripper", first, SEEDS[:3]))
+        files[name + "2"] = write(tmp_path, name + "2", result("fix-gripper", rest, SEEDS[3:]))
+    whole = cmp.compare_cli([files["a"], files["b"], "--resamples", "2000"])
+    pooled = cmp.compare_cli([files["a1"], files["b1"], "--also", files["a2"], files["b2"], "--resamples", "2000"])
+    for key in ("scenes", "rate_difference", "ci95", "b_better", "b_worse", "same", "p_value"):
+        assert pooled[key] == whole[key], key
+    assert pooled["a"]["rate"] == whole["a"]["rate"] and pooled["a"]["path"] == f"{files['a1']} + {files['a2']}"
+    assert len(pooled["a"]["file_rate"]) == 2
+    alone = cmp.compare_cli([files["a1"], files["b1"], "--resamples", "2000"])
+    assert alone["scenes"] == 3 and alone["rate_difference"] != whole["rate_difference"]
+    assert f"+ {files['b2']}" in capsys.readouterr().out
+
+
+def test_pooling_refuses_a_scene_twice_or_another_row(tmp_path, capsys):
+    a = write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS))
+    b = write(tmp_path, "b", result("fix-gripper", FG_B, SEEDS))
+    with pytest.raises(ev.EvaluationError, match=r"a\.json: scene_seed 11: also in .*a\.json \(pool other scenes"):
+        cmp.compare_cli([a, b, "--also", a, b])
+    other = result("fix-gripper", FG_B, [21, 22, 23, 24, 25])
+    other["checkpoint"] = "model:another"
+    o = write(tmp_path, "o", other)
+    a2 = write(tmp_path, "a2", result("fix-gripper", FG_A, [21, 22, 23, 24, 25]))
+    with pytest.raises(ev.EvaluationError, match=r"o\.json: checkpoint: 'model:another', but .*b\.json has None"):
+        cmp.compare_cli([a, b, "--also", a2, o])
+    fewer = write(tmp_path, "f", result("fix-gripper", {"wsg_50": FG_B["wsg_50"]}, [21, 22, 23, 24, 25]))
+    assert ev.cli(["compare", a, b, "--also", a2, fewer]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "grippers ['wsg_50']" in err
