@@ -246,6 +246,10 @@ class ReplayConfig:
     """Times Ray re-sends a shard request after the shard actor died and restarted (-1 = forever)."""
     shard_num_cpus: float = 0.0
     """CPUs a shard actor reserves in Ray (it mostly waits on disk)."""
+    seed_from: str = ""
+    """An earlier replay (RUN or RUN/replay) whose newest readable trials, up to capacity, a new run's
+    replay starts with (sampled like the run's own; not counted in its trials, epsilon schedule or
+    rate limit); "" = an empty start. A resumed run ignores it."""
 
 
 @dataclass

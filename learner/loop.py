@@ -63,8 +63,9 @@ def checkpoint_path(run_dir: Path) -> Path:
 
 
 def total_inserted(replay: ReplayClient) -> int:
-    """Trials ever committed to the replay (all shards, evicted ones included)."""
-    return int(sum(s["end"] for s in replay.stats()["shards"]))
+    """Trials this run's actors ever committed to the replay (all shards, evicted ones included;
+    trials a new replay was seeded with, replay.seed_from, are not counted)."""
+    return int(sum(s["end"] - s["seeded"] for s in replay.stats()["shards"]))
 
 
 class LearnerProcess:
@@ -109,7 +110,7 @@ class LearnerProcess:
                 }
 
     def inserted(self) -> int:
-        """Trials ever committed to the replay."""
+        """Trials this run's actors ever committed to the replay (see total_inserted)."""
         return total_inserted(self.replay)
 
     def train(self, max_steps: int, idle_wait_s: float = 0.0, force_publish: bool = False) -> dict:

@@ -26,6 +26,7 @@ from pathlib import Path
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights
 from common.config import Config, ConfigError, load_config, save_config
 from common.files import atomic_write_text
+from replay.schema import ReplayError
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -73,6 +74,14 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
         initial_weights(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
+    if cfg.replay.seed_from and not args.resume:
+        from replay.seed import seed_replay
+
+        report = seed_replay(cfg.replay.seed_from, run_dir / "replay", cfg)
+        cfg.replay.seed_from = report["seeded_from"]
+        skipped = f"; {report['skipped']} unreadable, skipped (first: {report['problems'][0]})" if report["skipped"] else ""
+        print(f"replay seeded with {report['trials']} of {report['available']} trials of {report['seeded_from']}{skipped}",
+              flush=True)
     save_config(cfg, run_dir / "config.yaml")
     return cfg, run_dir
 
@@ -81,7 +90,7 @@ def cli(argv: list[str]) -> int:
     args = parse_args(argv)
     try:
         cfg, run_dir = resolve(args)
-    except (ConfigError, CheckpointError) as e:
+    except (ConfigError, CheckpointError, ReplayError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     from learner.loop import run_distributed, run_local

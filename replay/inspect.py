@@ -106,6 +106,7 @@ def summarize(path: str | Path) -> dict:
             "visible": st["visible"],
             "first": st["first"],
             "end": st["end"],
+            "seeded": st["seeded"],
             "lost": st["lost"],
             "corrupt": st["corrupt"],
             "gripper_table_rows_used": st["table_rows_used"],
@@ -168,6 +169,7 @@ def format_summary(s: dict) -> str:
         lines.append(
             f"shard {sh['path']}: {sh['visible']} visible (trials {sh['first']}..{sh['end'] - 1}), "
             f"{sh['lost'] + sh['corrupt']} unreadable, {sh['bytes_on_disk']:,} bytes"
+            + (f", seeded with trials 0..{sh['seeded'] - 1} (replay.seed_from)" if sh["seeded"] else "")
         )
         lines.extend(f"  problem: {p}" for p in sh["problems"])
     return "\n".join(lines)

@@ -389,6 +389,9 @@ class ReplayShard:
         self.scene_shape = tuple(int(v) for v in attrs["scene_shape"])
         self.gripper_shape = tuple(int(v) for v in attrs["gripper_shape"])
         self.shard_index = int(attrs["shard_index"])
+        self.seeded_trials = int(attrs.get("seeded_trials", 0))
+        """Trials copied in from an earlier replay before the run began (trial numbers
+        0..seeded_trials-1; replay.seed); 0 for a shard that started empty."""
         if cfg is not None:
             expected = {
                 "capacity": shard_capacity(cfg.replay.capacity, num_shards),
@@ -849,8 +852,9 @@ class ReplayShard:
             "missing": missing,
         }
 
-    def get_trial(self, trial_id: int) -> StoredTrial:
-        """One complete trial, decoded; ReplayError if not visible, ReplayCorruptError if unreadable."""
+    def encoded(self, trial_id: int, token: tuple[int, int]) -> EncodedTrial:
+        """One complete trial as stored (codes, not decoded), to be inserted elsewhere under
+        ``token``; ReplayError if not visible, ReplayCorruptError if unreadable."""
         t = int(trial_id)
         if t in self._corrupt:
             raise ReplayCorruptError(self._corrupt[t])
@@ -858,8 +862,8 @@ class ReplayShard:
             raise ReplayError(f"{self.path}: trial {t}: not visible (visible: {self._first}..{self._end - 1})")
         slot = t % self.slots
         row = int(self._col["gripper_row"][slot])
-        has_obstacle = int(self._col["obstacle_voxels"][slot]) > 0
-        names = ("tsdf", "surface", "gripper_table") + (("obstacle",) if has_obstacle else ())
+        n_obstacle = int(self._col["obstacle_voxels"][slot])
+        names = ("tsdf", "surface", "gripper_table") + (("obstacle",) if n_obstacle > 0 else ())
         results = []
         for nm, i in zip(names, (slot, slot, row, slot)):
             res = self._io[nm].read(i)
@@ -870,26 +874,46 @@ class ReplayShard:
             self._first, self._end = self._read_commit()
             if t < self._first:
                 raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
-        tsdf_q, surface_q, grip_q = results[:3]
-        if has_obstacle:
-            obstacle = decode_unit(results[3], OBSTACLE_LEVELS)
-        else:
-            obstacle = np.zeros(self.scene_shape, np.float32)
-        heightmap, valid = decode_surface(surface_q)
-        obs = Observation(
-            tsdf=decode_unit(tsdf_q, self.levels), obstacle=obstacle, heightmap=heightmap, valid=valid
-        ).validate()
         col = self._col
-        return StoredTrial(
-            trial_id=t,
-            observation=obs,
+        return EncodedTrial(
+            tsdf=results[0],
+            obstacle=results[3] if n_obstacle > 0 else None,
+            obstacle_voxels=n_obstacle,
+            surface=results[1],
             gripper_key=str(self._table["gripper_table_key"][row]),
-            gripper_encoding=decode_unit(grip_q, self.levels),
+            gripper=results[2],
             action=tuple(int(v) for v in col["action"][slot]),
             label=bool(col["label"][slot] == 1),
             score=float(col["score"][slot]),
-            meta=meta_from_json(str(col["meta"][slot])),
-            insert_time=float(col["insert_time"][slot]),
+            meta_json=str(col["meta"][slot]),
+            token=(int(token[0]), int(token[1])),
+            levels=self.levels,
+            where=f"{self.path}: trial {t}",
+        )
+
+    def get_trial(self, trial_id: int) -> StoredTrial:
+        """One complete trial, decoded; ReplayError if not visible, ReplayCorruptError if unreadable."""
+        t = int(trial_id)
+        rec = self.encoded(t, (-1, t))
+        slot = t % self.slots
+        if rec.obstacle is not None:
+            obstacle = decode_unit(rec.obstacle, OBSTACLE_LEVELS)
+        else:
+            obstacle = np.zeros(self.scene_shape, np.float32)
+        heightmap, valid = decode_surface(rec.surface)
+        obs = Observation(
+            tsdf=decode_unit(rec.tsdf, self.levels), obstacle=obstacle, heightmap=heightmap, valid=valid
+        ).validate()
+        return StoredTrial(
+            trial_id=t,
+            observation=obs,
+            gripper_key=rec.gripper_key,
+            gripper_encoding=decode_unit(rec.gripper, self.levels),
+            action=rec.action,
+            label=rec.label,
+            score=rec.score,
+            meta=meta_from_json(rec.meta_json),
+            insert_time=float(self._col["insert_time"][slot]),
         )
 
     # ----------------------------------------------------------------------------------
@@ -901,7 +925,8 @@ class ReplayShard:
         return dict(self.attrs)
 
     def stats(self) -> dict:
-        """Counters: visible, successes, failures, lost, corrupt, duplicates, table rows in use."""
+        """Counters: commit range, seeded, visible, successes, failures, lost, corrupt, duplicates,
+        table rows in use."""
         idx = self.index()
         ids = np.arange(self._first, self._end)
         return {
@@ -910,6 +935,7 @@ class ReplayShard:
             "capacity": self.capacity,
             "first": self._first,
             "end": self._end,
+            "seeded": self.seeded_trials,
             "visible": int(len(idx["trial_id"])),
             "successes": int(idx["label"].sum()),
             "failures": int((~idx["label"]).sum()),

@@ -1,0 +1,120 @@
+"""A new run's replay seeded with the trials of an earlier replay (``replay.seed_from``).
+
+The newest readable trials of the source (a run directory or its ``replay`` folder), up to the
+new replay's capacity, are copied as stored (the int8 codes, no second quantisation) into the
+new run's shards, oldest first, round-robin. Their metadata is kept exactly; their
+``insert_time`` is the time of the copy and their insert token's client id is
+:data:`SEED_CLIENT`. Each shard records how many trials it was seeded with
+(``seeded_trials``, trial numbers ``0 .. seeded_trials - 1``), and the root records the source
+(``seeded_from``) and the total; :func:`learner.loop.total_inserted` leaves seeded trials out,
+so the run's trial count, epsilon schedule, rate limiter and ``run.max_trials`` count only
+the trials its own actors collect, while the learner samples from both from its first step.
+
+The copy is built in ``RUN/replay.seeding`` and renamed to ``RUN/replay`` when complete, so
+a cut-off seeding leaves no replay behind (the folder is removed by the next attempt). A source
+whose grids, quantisation, rotations or grasp depth differ from the new run's is refused with
+one line naming the source shard and the attribute; nothing is written then. The source is
+only read, and may be a run that is still writing it.
+
+Usage::
+
+    report = seed_replay("runs/earlier", run_dir / "replay", cfg)
+    report["trials"], report["skipped"]
+"""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+from pathlib import Path
+
+import zarr
+
+from common.config import Config
+from replay.inspect import open_readers, trial_table
+from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
+from replay.shard import ReplayCorruptWarning, ReplayShard, ensure_root, shard_path
+
+SEED_CLIENT = -2
+"""Client id in the insert token of a copied trial (actors use ids >= 0, a plain insert -1)."""
+
+MATCHING_ATTRIBUTES = (
+    "scene_shape", "gripper_shape", "tsdf_levels", "rotations", "grasp_depth_m", "scene_grid", "gripper_grid",
+)
+"""Shard attributes a source must share with the new run for its trials to mean the same there."""
+
+STAGING_SUFFIX = ".seeding"
+"""The copy is built in ``<replay>.seeding`` and renamed when complete."""
+
+
+def source_root(source: str | Path) -> Path:
+    """The replay folder of ``source``: ``source/replay`` when ``source`` is a run directory."""
+    p = Path(source)
+    if (p / "replay" / "zarr.json").is_file() and not (p / "zarr.json").is_file():
+        return p / "replay"
+    if not p.exists():
+        raise ReplayError(f"{p}: replay.seed_from: no such file or directory")
+    return p
+
+
+def _set_attributes(path: Path, **values) -> None:
+    group = zarr.open_group(str(path), mode="r+")
+    group.attrs[ATTR_KEY] = {**dict(group.attrs[ATTR_KEY]), **values}
+
+
+def seed_replay(source: str | Path, root: str | Path, cfg: Config) -> dict:
+    """Copy the newest readable trials of ``source`` into a new replay at ``root`` (must not
+    exist) with ``cfg.replay``'s shards and capacity. Returns ``seeded_from`` (absolute source
+    path), ``trials`` (copied), ``available`` (readable trials in the source), ``skipped``
+    (found unreadable while copying, or evicted meanwhile by a run still writing the source) and
+    ``problems`` (one line each)."""
+    src = source_root(source).resolve()
+    root = Path(root)
+    if root.exists():
+        raise ReplayError(f"{root}: replay.seed_from: this run already has a replay; seeding needs a new run")
+    readers = open_readers(src)
+    staging = root.with_name(root.name + STAGING_SUFFIX)
+    if staging.exists():
+        shutil.rmtree(staging)  # left by a seeding that was cut off; never visible as a replay
+    n_shards = cfg.replay.shards
+    ensure_root(staging, n_shards)
+    shards = [ReplayShard(shard_path(staging, k), cfg, shard_index=k, num_shards=n_shards) for k in range(n_shards)]
+    try:
+        want = shards[0].info()
+        for r in readers:
+            have = r.info()
+            for key in MATCHING_ATTRIBUTES:
+                if have.get(key) != want.get(key):
+                    raise ReplaySchemaError(
+                        f"{r.path}: attributes.{ATTR_KEY}.{key}: source has {have.get(key)!r}, "
+                        f"this run's config gives {want.get(key)!r}"
+                    )
+        table = trial_table(readers)
+        available = len(table["trial_id"])
+        chosen = range(max(0, available - cfg.replay.capacity), available)
+        copied, problems = 0, []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ReplayCorruptWarning)  # reported in the summary instead
+            for n in chosen:
+                reader = readers[int(table["shard"][n])]
+                try:
+                    rec = reader.encoded(int(table["trial_id"][n]), (SEED_CLIENT, copied))
+                except ReplayError as e:  # unreadable, or evicted by a live writer since it was listed
+                    problems.append(str(e))
+                    continue
+                shards[copied % n_shards].insert_encoded(rec)
+                copied += 1
+        counts = [s.stats()["end"] for s in shards]
+    except BaseException:
+        for s in shards:
+            s.close()
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    for s in shards:
+        s.close()
+    for k, count in enumerate(counts):
+        _set_attributes(shard_path(staging, k), seeded_trials=count)
+    _set_attributes(staging, seeded_from=str(src), seeded_trials=copied)
+    staging.rename(root)
+    return {"seeded_from": str(src), "trials": copied, "available": available, "skipped": len(problems),
+            "problems": problems}

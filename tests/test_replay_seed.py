@@ -1,0 +1,183 @@
+"""Seeding a new run's replay from an earlier one (replay.seed_from): the trials arrive as
+stored, the newest first up to capacity, a mismatched or corrupt source is named in one line,
+and the run's own counters (trials, rate limiter, max_trials) leave the seeded trials out."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import zarr
+
+from common.config import load_config
+from learner.loop import LearnerProcess, total_inserted
+from learner.run import cli, parse_args, resolve
+from replay.client import ReplayClient, open_local_shards
+from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
+from replay.seed import SEED_CLIENT, STAGING_SUFFIX, seed_replay
+from replay.shard import ReplayShard
+from replay.synthetic import numbered_trial
+from replay.synthetic import small_config as tiny_cfg
+from tests.test_learner import SMALL
+
+def _source(path: Path, cfg, n: int) -> list[ReplayShard]:
+    """A replay at ``path`` holding trials 0..n-1 (episode_id = i; every third with obstacles)."""
+    shards = open_local_shards(path, cfg)
+    client = ReplayClient(shards, cfg, seed=0)
+    for i in range(n):
+        t = numbered_trial(cfg, i, n_objects=2, n_obstacles=1 if i % 3 == 0 else 0)
+        t.label = bool(i % 2)
+        client.insert(t.validate())
+    client.flush()
+    return shards
+
+
+def _by_episode(shards: list[ReplayShard]) -> dict[int, object]:
+    """Every visible trial's stored record, keyed by its episode id."""
+    out = {}
+    for s in shards:
+        for t in s.visible_ids():
+            rec = s.encoded(int(t), (0, 0))
+            out[json.loads(rec.meta_json)["episode_id"]] = rec
+    return out
+
+
+def _digest(path: Path) -> dict[str, str]:
+    return {str(p.relative_to(path)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def test_seeded_replay_holds_the_source_trials_as_stored(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=1)
+    source = _source(tmp_path / "old" / "replay", cfg, 7)
+    before = _by_episode(source)
+    for s in source:
+        s.close()
+    cfg.replay.shards = 2
+    report = seed_replay(tmp_path / "old", tmp_path / "new" / "replay", cfg)  # a run directory is enough
+    assert report["trials"] == report["available"] == 7 and report["skipped"] == 0
+    assert report["seeded_from"] == str((tmp_path / "old" / "replay").resolve())
+    assert not (tmp_path / "new" / ("replay" + STAGING_SUFFIX)).exists()
+    shards = open_local_shards(tmp_path / "new" / "replay", cfg)
+    after = _by_episode(shards)
+    assert after.keys() == before.keys()
+    for ep, old in before.items():
+        new = after[ep]
+        for name in ("tsdf", "surface", "gripper"):
+            assert np.array_equal(getattr(new, name), getattr(old, name)), (ep, name)
+        assert (new.obstacle is None) == (old.obstacle is None)
+        if old.obstacle is not None:
+            assert np.array_equal(new.obstacle, old.obstacle)
+        assert (new.action, new.label, new.score, new.meta_json, new.gripper_key) == (
+            old.action, old.label, old.score, old.meta_json, old.gripper_key)
+    tokens = np.concatenate([s.column("insert_token", s.visible_ids()) for s in shards])
+    assert (tokens[:, 0] == SEED_CLIENT).all()
+    assert [s.stats()["seeded"] for s in shards] == [4, 3], "round-robin, oldest first"
+    root = zarr.open_group(str(tmp_path / "new" / "replay"), mode="r").attrs[ATTR_KEY]
+    assert root["seeded_trials"] == 7 and root["seeded_from"] == report["seeded_from"]
+    client = ReplayClient(shards, cfg, seed=1)
+    assert total_inserted(client) == 0, "seeded trials are not this run's trials"
+    client.insert(numbered_trial(cfg, 100).validate())
+    client.flush()
+    assert total_inserted(client) == 1 and client.size() == 8
+    for s in shards:
+        s.close()
+
+
+def test_seed_keeps_the_newest_trials_up_to_capacity(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=1)
+    for s in _source(tmp_path / "old", cfg, 12):
+        s.close()
+    small = tiny_cfg(capacity=6, shards=2)
+    report = seed_replay(tmp_path / "old", tmp_path / "new", small)
+    assert report["trials"] == 6 and report["available"] == 12
+    shards = open_local_shards(tmp_path / "new", small)
+    assert sorted(_by_episode(shards)) == list(range(6, 12))
+    for s in shards:
+        s.close()
+
+
+def test_mismatched_source_is_one_line_and_writes_nothing(tmp_path):
+    coarse = tiny_cfg(capacity=16, shards=1, levels=63)
+    for s in _source(tmp_path / "old", coarse, 3):
+        s.close()
+    before = _digest(tmp_path / "old")
+    with pytest.raises(ReplaySchemaError) as e:
+        seed_replay(tmp_path / "old", tmp_path / "new" / "replay", tiny_cfg(capacity=16, shards=2))
+    line = str(e.value)
+    assert "\n" not in line and "shard_000" in line and "tsdf_levels" in line and "63" in line, line
+    assert not (tmp_path / "new" / "replay").exists()
+    assert not (tmp_path / "new" / ("replay" + STAGING_SUFFIX)).exists()
+    assert _digest(tmp_path / "old") == before, "the source is only read"
+    with pytest.raises(ReplayError, match="no such file"):
+        seed_replay(tmp_path / "missing", tmp_path / "new" / "replay", coarse)
+
+
+def test_unreadable_source_trial_is_skipped_and_named(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=1)
+    for s in _source(tmp_path / "old", cfg, 5):
+        s.close()
+    chunk = tmp_path / "old" / "shard_000" / "tsdf" / "c.2.0.0.0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    report = seed_replay(tmp_path / "old", tmp_path / "new", cfg)
+    assert report["trials"] == 4 and report["skipped"] == 1
+    assert "tsdf" in report["problems"][0] and "trial 2" in report["problems"][0]
+    shards = open_local_shards(tmp_path / "new", cfg)
+    assert sorted(_by_episode(shards)) == [0, 1, 3, 4]
+    assert shards[0].stats()["seeded"] == 4
+    for s in shards:
+        s.close()
+
+
+def test_learner_counts_only_the_runs_own_trials(tmp_path):
+    cfg = load_config("tiny", overrides=SMALL)
+    for s in _source(tmp_path / "old", cfg, 12):
+        s.close()
+    seed_replay(tmp_path / "old", tmp_path / "run" / "replay", cfg)
+    shards = open_local_shards(tmp_path / "run" / "replay", cfg)
+    torch.manual_seed(0)
+    proc = LearnerProcess(cfg, shards, str(tmp_path / "run"), seed=0, torch_threads=1)
+    assert proc.inserted() == 0
+    assert proc.train(4)["ran"] == 0, "no step before the run's own min_replay trials, seeded ones aside"
+    own = 11  # with min_replay 8 and 2 samples per insert: (11 - 8 + 1) * 2 = 8 samples, one step of 8
+    assert proc.learner.limiter.allowed_steps(own, 0) == 1
+    client = ReplayClient(shards, cfg, seed=1)
+    for i in range(own):
+        t = numbered_trial(cfg, 1000 + i, n_objects=2)
+        t.label = bool(i % 2)
+        client.insert(t.validate())
+    client.flush()
+    stats = proc.train(4)
+    assert stats["inserted"] == own and stats["ran"] == 1, stats
+    assert proc.replay.size() == 12 + own
+    for s in shards:
+        s.close()
+
+
+def test_launcher_seeds_a_new_run_once_and_records_the_source(tmp_path, capsys):
+    cfg = load_config("tiny")
+    for s in _source(tmp_path / "old" / "replay", cfg, 3):
+        s.close()
+    run = tmp_path / "run"
+    args = ["--config", "tiny", "--run-dir", str(run), "--set", f"replay.seed_from={tmp_path / 'old'}"]
+    resolved, _ = resolve(parse_args(args))
+    assert resolved.replay.seed_from == str((tmp_path / "old" / "replay").resolve())
+    assert load_config(run / "config.yaml").replay.seed_from == resolved.replay.seed_from
+    assert "replay seeded with 3 of 3 trials" in capsys.readouterr().out
+    resumed, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
+    assert resumed.replay.seed_from == resolved.replay.seed_from, "a resumed run keeps its replay, seeds nothing"
+    shards = open_local_shards(run / "replay", cfg)
+    assert sum(s.stats()["end"] for s in shards) == 3
+    for s in shards:
+        s.close()
+    rc = cli(["--actors", "0", "--config", "tiny", "--run-dir", str(tmp_path / "bad"),
+              "--set", f"replay.seed_from={tmp_path / 'nothing'}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "replay.seed_from" in err[0] and "nothing" in err[0], err
+    assert not (tmp_path / "bad" / "config.yaml").exists() and not (tmp_path / "bad" / "replay").exists()
