@@ -271,7 +271,7 @@ class LearnerConfig:
     samples_per_insert: float = 32.0
     """Learner samples (trials) drawn per inserted trial; paper: 32 x 8 samples per 8 trials."""
     min_replay: int = 32
-    """Trials in the replay before training starts."""
+    """Trials the run's actors have collected before training starts (trials seeded from another replay aside)."""
     insert_lead: float = 32.0
     """Trials the actors may insert ahead of the samples-per-insert schedule before they wait for
     the learner (the actor side of the rate limiter); 0 = actors never wait."""

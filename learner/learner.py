@@ -7,7 +7,7 @@ actor. Call loop::
 
     learner = Learner(cfg, replay, device="cpu")
     while running:
-        steps = learner.limiter.allowed_steps(replay.total_inserted(), learner.samples)
+        steps = learner.limiter.allowed_steps(total_inserted(replay), learner.stats.samples)  # learner.loop
         stats = learner.train(steps)
         if learner.steps_since_publish >= cfg.learner.publish_every:
             version, state = learner.publish()

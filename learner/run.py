@@ -37,7 +37,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--run-dir", default=None, help="run directory (default: runs/<time>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir")
-    p.add_argument("--max-trials", type=int, default=None, help="stop after this many trials in the replay")
+    p.add_argument("--max-trials", type=int, default=None, help="stop after this many trials collected by this run")
     p.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes")
     p.add_argument("--address", default=None, help="Ray cluster address (e.g. auto); default: a local instance")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
@@ -53,6 +53,13 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not (run_dir / "config.yaml").is_file():
             raise ConfigError(f"{run_dir / 'config.yaml'}: not found; nothing to resume")
         cfg = load_config(run_dir / "config.yaml", overrides=args.set)
+        recorded = load_config(run_dir / "config.yaml").replay.seed_from
+        if cfg.replay.seed_from != recorded:
+            origin = f"seeded from {recorded}" if recorded else "started empty"
+            raise ConfigError(
+                f"{run_dir / 'config.yaml'}: replay.seed_from: a resumed run keeps its replay ({origin}); "
+                f"it cannot be seeded again"
+            )
     else:
         cfg = load_config(args.config, overrides=args.set)
         run_dir = Path(args.run_dir) if args.run_dir else Path(cfg.run.run_dir) / time.strftime("%Y%m%d-%H%M%S")
@@ -79,7 +86,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
 
         report = seed_replay(cfg.replay.seed_from, run_dir / "replay", cfg)
         cfg.replay.seed_from = report["seeded_from"]
-        skipped = f"; {report['skipped']} unreadable, skipped (first: {report['problems'][0]})" if report["skipped"] else ""
+        skipped = (f"; {report['skipped']} unreadable or evicted, skipped (first: {report['problems'][0]})"
+                   if report["skipped"] else "")
         print(f"replay seeded with {report['trials']} of {report['available']} trials of {report['seeded_from']}{skipped}",
               flush=True)
     save_config(cfg, run_dir / "config.yaml")

@@ -41,7 +41,8 @@ def open_readers(path: str | Path) -> list[ReplayShard]:
 
 def trial_table(readers: list[ReplayShard]) -> dict[str, np.ndarray]:
     """Every visible readable trial of ``readers`` in commit order: shard (n,), trial_id (n,),
-    insert_time (n,) s, label (n,) bool, score (n,), meta (n,) JSON text."""
+    seeded (n,) bool (copied in by replay.seed_from), insert_time (n,) s, label (n,) bool,
+    score (n,), meta (n,) JSON text."""
     shard, ids = [], []
     for k, r in enumerate(readers):
         v = r.visible_ids()
@@ -54,7 +55,8 @@ def trial_table(readers: list[ReplayShard]) -> dict[str, np.ndarray]:
         m = shard_a == k
         for name in cols:
             cols[name].append(r.column(name, ids_a[m]))
-    out = {"shard": shard_a, "trial_id": ids_a}
+    seeded = np.array([r.seeded_trials for r in readers], np.int64)
+    out = {"shard": shard_a, "trial_id": ids_a, "seeded": ids_a < seeded[shard_a]}
     out.update({name: np.concatenate(v) for name, v in cols.items()})
     out["label"] = out["label"] == 1
     order = np.lexsort((out["trial_id"], out["shard"], out["insert_time"]))
@@ -75,10 +77,13 @@ def summarize(path: str | Path) -> dict:
     metas = [json.loads(str(m)) for m in table["meta"]]
     labels = table["label"].tolist()
     by = {key: defaultdict(list) for key in ("gripper", "scene", "object_set", "policy_version")}
-    for meta, lab in zip(metas, labels):
+    for meta, lab, seeded in zip(metas, labels, table["seeded"]):
         for key in by:
-            by[key][meta[key]].append(lab)
-    times = table["insert_time"]
+            value = meta[key]
+            if seeded and key == "policy_version":  # another run's versions; this run's count from 0 again
+                value = f"{value} (seeded)"
+            by[key][value].append(lab)
+    times = table["insert_time"][~table["seeded"]]  # the copies all arrive at once: not an insert rate
     rate: dict = {"bins": [], "span_s": 0.0}
     if len(times) >= 2 and times[-1] > times[0]:
         span = float(times[-1] - times[0])
@@ -126,6 +131,7 @@ def summarize(path: str | Path) -> dict:
         "capacity": int(sum(s["capacity"] for s in shards)),
         "trials": n,
         "trial_range": [0, n - 1] if n else None,
+        "seeded_trials": int(table["seeded"].sum()),
         "success_rate": float(np.mean(labels)) if n else None,
         "by_gripper": _rates(by["gripper"]),
         "by_scene": _rates(by["scene"]),
@@ -149,6 +155,11 @@ def format_summary(s: dict) -> str:
         f"trials            {s['trials']} of capacity {s['capacity']}"
         + (f"  (numbered 0..{s['trial_range'][1]}, oldest first)" if s["trials"] else ""),
         f"success rate      {pct(s['success_rate'])}",
+    ]
+    if s["seeded_trials"]:
+        lines.append(f"seeded            {s['seeded_trials']} of them copied from another replay before the run "
+                     f"(replay.seed_from); left out of the insert rate")
+    lines += [
         f"scene grid        {s['scene_shape']}, gripper grid {s['gripper_shape']}, TSDF levels {s['tsdf_levels']}",
         f"bytes on disk     {s['bytes_on_disk']:,}"
         + (f"  ({s['bytes_per_trial'] / 1024:.1f} KiB per trial)" if s["bytes_per_trial"] else ""),

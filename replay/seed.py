@@ -2,9 +2,11 @@
 
 The newest readable trials of the source (a run directory or its ``replay`` folder), up to the
 new replay's capacity, are copied as stored (the int8 codes, no second quantisation) into the
-new run's shards, oldest first, round-robin. Their metadata is kept exactly; their
-``insert_time`` is the time of the copy and their insert token's client id is
-:data:`SEED_CLIENT`. Each shard records how many trials it was seeded with
+new run's shards, oldest first, round-robin. Their action, label, score, obstacle count and
+metadata are kept exactly (the score, the source learner's prediction, sets a copy's sampling
+priority until the new learner draws and re-scores it); their trial numbers and gripper-table
+rows are the new shard's, their ``insert_time`` is the time of the copy and their insert
+token's client id is :data:`SEED_CLIENT`. Each shard records how many trials it was seeded with
 (``seeded_trials``, trial numbers ``0 .. seeded_trials - 1``), and the root records the source
 (``seeded_from``) and the total; :func:`learner.loop.total_inserted` leaves seeded trials out,
 so the run's trial count, epsilon schedule, rate limiter and ``run.max_trials`` count only
@@ -62,59 +64,88 @@ def _set_attributes(path: Path, **values) -> None:
     group.attrs[ATTR_KEY] = {**dict(group.attrs[ATTR_KEY]), **values}
 
 
+def _difference(key: str, have, want) -> tuple[str, object, object] | None:
+    """The first (dotted key, source value, run value) where two attribute values differ."""
+    if isinstance(have, dict) and isinstance(want, dict):
+        for k in sorted(set(have) | set(want)):
+            found = _difference(f"{key}.{k}", have.get(k), want.get(k))
+            if found:
+                return found
+        return None
+    return None if have == want else (key, have, want)
+
+
+def _check_matching(readers: list[ReplayShard], want: dict) -> None:
+    for r in readers:
+        have = r.info()
+        for key in MATCHING_ATTRIBUTES:
+            found = _difference(key, have.get(key), want.get(key))
+            if found:
+                name, a, b = found
+                raise ReplaySchemaError(
+                    f"{r.path}: attributes.{ATTR_KEY}.{name}: source has {a!r}, this run's config gives {b!r} "
+                    f"(replay.seed_from)"
+                )
+
+
 def seed_replay(source: str | Path, root: str | Path, cfg: Config) -> dict:
     """Copy the newest readable trials of ``source`` into a new replay at ``root`` (must not
     exist) with ``cfg.replay``'s shards and capacity. Returns ``seeded_from`` (absolute source
-    path), ``trials`` (copied), ``available`` (readable trials in the source), ``skipped``
-    (found unreadable while copying, or evicted meanwhile by a run still writing the source) and
+    path), ``trials`` (copied), ``available`` (readable trials listed in the source),
+    ``skipped`` (source trials lost: unreadable when the source was opened or copied, or evicted
+    meanwhile by a run still writing the source; the copy is not topped up with older ones) and
     ``problems`` (one line each)."""
     src = source_root(source).resolve()
     root = Path(root)
     if root.exists():
-        raise ReplayError(f"{root}: replay.seed_from: this run already has a replay; seeding needs a new run")
-    readers = open_readers(src)
+        raise ReplayError(
+            f"{root}: replay.seed_from: this run directory already has a replay (a new run seeds an empty "
+            f"one); remove it or choose another --run-dir"
+        )
     staging = root.with_name(root.name + STAGING_SUFFIX)
-    if staging.exists():
-        shutil.rmtree(staging)  # left by a seeding that was cut off; never visible as a replay
     n_shards = cfg.replay.shards
-    ensure_root(staging, n_shards)
-    shards = [ReplayShard(shard_path(staging, k), cfg, shard_index=k, num_shards=n_shards) for k in range(n_shards)]
+    shards: list[ReplayShard] = []
     try:
-        want = shards[0].info()
-        for r in readers:
-            have = r.info()
-            for key in MATCHING_ATTRIBUTES:
-                if have.get(key) != want.get(key):
-                    raise ReplaySchemaError(
-                        f"{r.path}: attributes.{ATTR_KEY}.{key}: source has {have.get(key)!r}, "
-                        f"this run's config gives {want.get(key)!r}"
-                    )
-        table = trial_table(readers)
-        available = len(table["trial_id"])
-        chosen = range(max(0, available - cfg.replay.capacity), available)
-        copied, problems = 0, []
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ReplayCorruptWarning)  # reported in the summary instead
-            for n in chosen:
+            try:
+                readers = open_readers(src)
+            except ReplaySchemaError as e:
+                raise ReplaySchemaError(f"{e} (replay.seed_from)") from None
+            lost = sum(r.stats()["lost"] for r in readers)
+            problems = [line for r in readers for line in r.problems()]
+            if staging.exists():
+                shutil.rmtree(staging)  # left by a seeding that was cut off; never visible as a replay
+            ensure_root(staging, n_shards)
+            shards = [ReplayShard(shard_path(staging, k), cfg, shard_index=k, num_shards=n_shards)
+                      for k in range(n_shards)]
+            _check_matching(readers, shards[0].info())
+            table = trial_table(readers)
+            available = len(table["trial_id"])
+            copied, failed = 0, 0
+            for n in range(max(0, available - cfg.replay.capacity), available):
                 reader = readers[int(table["shard"][n])]
                 try:
                     rec = reader.encoded(int(table["trial_id"][n]), (SEED_CLIENT, copied))
                 except ReplayError as e:  # unreadable, or evicted by a live writer since it was listed
+                    failed += 1
                     problems.append(str(e))
                     continue
                 shards[copied % n_shards].insert_encoded(rec)
                 copied += 1
-        counts = [s.stats()["end"] for s in shards]
-    except BaseException:
-        for s in shards:
-            s.close()
+        counts = [sh.stats()["end"] for sh in shards]
+        for sh in shards:
+            sh.close()
+        for k, count in enumerate(counts):
+            _set_attributes(shard_path(staging, k), seeded_trials=count)
+        _set_attributes(staging, seeded_from=str(src), seeded_trials=copied)
+        staging.rename(root)
+    except BaseException as e:
+        for sh in shards:
+            sh.close()
         shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(e, OSError):
+            raise ReplayError(f"{staging}: replay.seed_from: copying {src} failed ({type(e).__name__}: {e})") from None
         raise
-    for s in shards:
-        s.close()
-    for k, count in enumerate(counts):
-        _set_attributes(shard_path(staging, k), seeded_trials=count)
-    _set_attributes(staging, seeded_from=str(src), seeded_trials=copied)
-    staging.rename(root)
-    return {"seeded_from": str(src), "trials": copied, "available": available, "skipped": len(problems),
+    return {"seeded_from": str(src), "trials": copied, "available": available, "skipped": lost + failed,
             "problems": problems}

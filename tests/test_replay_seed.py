@@ -13,11 +13,12 @@ import pytest
 import torch
 import zarr
 
-from common.config import load_config
+from common.config import ConfigError, load_config
 from learner.loop import LearnerProcess, total_inserted
 from learner.run import cli, parse_args, resolve
 from replay.client import ReplayClient, open_local_shards
 from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
+from replay.inspect import summarize
 from replay.seed import SEED_CLIENT, STAGING_SUFFIX, seed_replay
 from replay.shard import ReplayShard
 from replay.synthetic import numbered_trial
@@ -101,6 +102,45 @@ def test_seed_keeps_the_newest_trials_up_to_capacity(tmp_path):
         s.close()
 
 
+def test_newest_across_source_shards_into_uneven_shards_with_shared_gripper_rows(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=2)
+    source = open_local_shards(tmp_path / "old", cfg)
+    for i in range(10):  # one gripper at three openings: trials share gripper-table rows
+        source[i % 2].insert(numbered_trial(cfg, i, scale=1.0, openings=(0.6, 0.8, 1.0)))
+    before = _by_episode(source)
+    for sh in source:
+        sh.close()
+    three = tiny_cfg(capacity=7, shards=3)  # 3 slots per shard
+    report = seed_replay(tmp_path / "old", tmp_path / "new", three)
+    assert report["trials"] == 7 and report["available"] == 10
+    shards = open_local_shards(tmp_path / "new", three)
+    after = _by_episode(shards)
+    assert sorted(after) == list(range(3, 10)), "the newest by commit time, across both source shards"
+    for ep, new in after.items():
+        assert np.array_equal(new.gripper, before[ep].gripper) and new.action == before[ep].action
+        assert np.array_equal(new.tsdf, before[ep].tsdf)
+    assert [sh.stats()["seeded"] for sh in shards] == [3, 2, 2]
+    assert all(sh.stats()["table_rows_used"] <= min(3, sh.stats()["visible"]) for sh in shards)
+    client = ReplayClient(shards[:1], three, seed=0)
+    for i in range(4):  # the run's own trials push every seeded one out of shard 0
+        client.insert(numbered_trial(three, 100 + i).validate())
+    client.flush()
+    assert total_inserted(client) == 4 and shards[0].stats()["visible"] == 3
+    for sh in shards:
+        sh.close()
+
+
+def test_left_over_staging_folder_is_replaced(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=1)
+    for sh in _source(tmp_path / "old", cfg, 3):
+        sh.close()
+    staging = tmp_path / "new" / ("replay" + STAGING_SUFFIX)
+    staging.mkdir(parents=True)
+    (staging / "half-written").write_text("a seeding cut off")
+    assert seed_replay(tmp_path / "old", tmp_path / "new" / "replay", cfg)["trials"] == 3
+    assert not staging.exists() and not (tmp_path / "new" / "replay" / "half-written").exists()
+
+
 def test_mismatched_source_is_one_line_and_writes_nothing(tmp_path):
     coarse = tiny_cfg(capacity=16, shards=1, levels=63)
     for s in _source(tmp_path / "old", coarse, 3):
@@ -115,6 +155,10 @@ def test_mismatched_source_is_one_line_and_writes_nothing(tmp_path):
     assert _digest(tmp_path / "old") == before, "the source is only read"
     with pytest.raises(ReplayError, match="no such file"):
         seed_replay(tmp_path / "missing", tmp_path / "new" / "replay", coarse)
+    wider = tiny_cfg(capacity=16, shards=1, levels=63)
+    wider.scene_grid.truncation_voxels = 3.0  # same shapes, another TSDF: the sub-field is named
+    with pytest.raises(ReplaySchemaError, match=r"scene_grid\.truncation: source has 0\.04, .* gives 0\.024"):
+        seed_replay(tmp_path / "old", tmp_path / "new" / "replay", wider)
 
 
 def test_unreadable_source_trial_is_skipped_and_named(tmp_path):
@@ -133,6 +177,32 @@ def test_unreadable_source_trial_is_skipped_and_named(tmp_path):
     assert shards[0].stats()["seeded"] == 4
     for s in shards:
         s.close()
+
+
+def test_trials_lost_in_the_source_columns_are_counted_and_named(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=1)  # 4 trials per column chunk
+    for sh in _source(tmp_path / "old", cfg, 6):
+        sh.close()
+    meta = tmp_path / "old" / "shard_000" / "meta" / "c.1"  # slots 4..7
+    meta.write_bytes(meta.read_bytes()[:-3] + b"xyz")
+    report = seed_replay(tmp_path / "old", tmp_path / "new", cfg)
+    assert report["trials"] == report["available"] == 4 and report["skipped"] == 2
+    assert any("/meta" in line for line in report["problems"]), report["problems"]
+
+
+def test_inspect_counts_seeded_trials_apart(tmp_path):
+    cfg = tiny_cfg(capacity=16, shards=1)
+    for sh in _source(tmp_path / "old", cfg, 5):
+        sh.close()
+    seed_replay(tmp_path / "old", tmp_path / "new", cfg)
+    shards = open_local_shards(tmp_path / "new", cfg)
+    for i in range(3):
+        shards[0].insert(numbered_trial(cfg, 50 + i, policy_version=1))
+    shards[0].close()
+    s = summarize(tmp_path / "new")
+    assert s["trials"] == 8 and s["seeded_trials"] == 5
+    assert {k: v["trials"] for k, v in s["by_policy_version"].items()} == {"0 (seeded)": 5, "1": 3}
+    assert sum(b["trials"] for b in s["insert_rate"]["bins"]) == 3, "the copies are not an insert rate"
 
 
 def test_learner_counts_only_the_runs_own_trials(tmp_path):
@@ -172,6 +242,10 @@ def test_launcher_seeds_a_new_run_once_and_records_the_source(tmp_path, capsys):
     assert "replay seeded with 3 of 3 trials" in capsys.readouterr().out
     resumed, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
     assert resumed.replay.seed_from == resolved.replay.seed_from, "a resumed run keeps its replay, seeds nothing"
+    with pytest.raises(ConfigError) as e:
+        resolve(parse_args(["--resume", "--run-dir", str(run), "--set", f"replay.seed_from={tmp_path}"]))
+    assert "\n" not in str(e.value) and "replay.seed_from" in str(e.value) and "config.yaml" in str(e.value)
+    assert load_config(run / "config.yaml").replay.seed_from == resolved.replay.seed_from, "the record is kept"
     shards = open_local_shards(run / "replay", cfg)
     assert sum(s.stats()["end"] for s in shards) == 3
     for s in shards:
