@@ -80,11 +80,17 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not cfg.learner.init_weights.startswith(SHIPPED_PREFIX):
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
         initial_weights(cfg)
+    new_dir = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.replay.seed_from and not args.resume:
         from replay.seed import seed_replay
 
-        report = seed_replay(cfg.replay.seed_from, run_dir / "replay", cfg)
+        try:
+            report = seed_replay(cfg.replay.seed_from, run_dir / "replay", cfg)
+        except BaseException:
+            if new_dir and not any(run_dir.iterdir()):
+                run_dir.rmdir()  # a refused run leaves no run directory behind (its staging copy is gone)
+            raise
         cfg.replay.seed_from = report["seeded_from"]
         skipped = (f"; {report['skipped']} unreadable or evicted, skipped (first: {report['problems'][0]})"
                    if report["skipped"] else "")

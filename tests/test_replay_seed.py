@@ -255,3 +255,4 @@ def test_launcher_seeds_a_new_run_once_and_records_the_source(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "replay.seed_from" in err[0] and "nothing" in err[0], err
     assert not (tmp_path / "bad" / "config.yaml").exists() and not (tmp_path / "bad" / "replay").exists()
+    assert not (tmp_path / "bad").exists(), "a refused run leaves no run directory behind"
