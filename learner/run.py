@@ -85,17 +85,24 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     if cfg.replay.seed_from and not args.resume:
         from replay.seed import seed_replay
 
+        def progress(done: int, total: int) -> None:
+            print(f"seeding the replay: {done} of {total} trials done", flush=True)
+
         try:
-            report = seed_replay(cfg.replay.seed_from, run_dir / "replay", cfg)
+            report = seed_replay(cfg.replay.seed_from, run_dir / "replay", cfg, progress=progress)
         except BaseException:
             if new_dir and not any(run_dir.iterdir()):
                 run_dir.rmdir()  # a refused run leaves no run directory behind (its staging copy is gone)
             raise
         cfg.replay.seed_from = report["seeded_from"]
-        skipped = (f"; {report['skipped']} unreadable or evicted, skipped (first: {report['problems'][0]})"
-                   if report["skipped"] else "")
-        print(f"replay seeded with {report['trials']} of {report['available']} trials of {report['seeded_from']}{skipped}",
-              flush=True)
+        if report["reused"]:
+            print(f"replay already seeded with {report['trials']} trials of {report['seeded_from']} "
+                  f"(a start that stopped before writing config.yaml); using it", flush=True)
+        else:
+            skipped = (f"; {report['skipped']} unreadable or evicted, skipped (first: {report['problems'][0]})"
+                       if report["skipped"] else "")
+            print(f"replay seeded with {report['trials']} of {report['available']} trials of "
+                  f"{report['seeded_from']}{skipped}", flush=True)
     save_config(cfg, run_dir / "config.yaml")
     return cfg, run_dir
 

@@ -13,7 +13,10 @@ so the run's trial count, epsilon schedule, rate limiter and ``run.max_trials`` 
 the trials its own actors collect, while the learner samples from both from its first step.
 
 The copy is built in ``RUN/replay.seeding`` and renamed to ``RUN/replay`` when complete, so
-a cut-off seeding leaves no replay behind (the folder is removed by the next attempt). A source
+a cut-off seeding leaves no replay behind (the folder is removed by the next attempt). A start
+stopped after that rename but before its ``config.yaml`` was written leaves a complete seeded
+replay that no trial of the run has reached yet; seeding it again from the same source reuses
+it (``reused`` in the report) instead of refusing the run directory. A source
 whose grids, quantisation, rotations or grasp depth differ from the new run's is refused with
 one line naming the source shard and the attribute; nothing is written then. The source is
 only read, and may be a run that is still writing it.
@@ -27,7 +30,9 @@ Usage::
 from __future__ import annotations
 
 import shutil
+import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import zarr
@@ -47,6 +52,9 @@ MATCHING_ATTRIBUTES = (
 
 STAGING_SUFFIX = ".seeding"
 """The copy is built in ``<replay>.seeding`` and renamed when complete."""
+
+PROGRESS_EVERY_S = 5.0
+"""Seconds between ``progress`` calls while copying."""
 
 
 def source_root(source: str | Path) -> Path:
@@ -88,16 +96,43 @@ def _check_matching(readers: list[ReplayShard], want: dict) -> None:
                 )
 
 
-def seed_replay(source: str | Path, root: str | Path, cfg: Config) -> dict:
+def _untouched_seeded_replay(root: Path, src: Path, n_shards: int) -> int | None:
+    """The trial count of ``root`` when it is a complete replay seeded from ``src`` with
+    ``n_shards`` shards that holds nothing but its seeded trials; None otherwise."""
+    try:
+        attrs = dict(zarr.open_group(str(root), mode="r").attrs.get(ATTR_KEY, {}))
+        if attrs.get("seeded_from") != str(src):
+            return None
+        readers = open_readers(root)
+    except (ReplayError, OSError, ValueError, KeyError):
+        return None
+    try:
+        if len(readers) != n_shards or any(r.stats()["end"] != r.seeded_trials for r in readers):
+            return None
+        return int(attrs.get("seeded_trials", 0))
+    finally:
+        for r in readers:
+            r.close()
+
+
+def seed_replay(source: str | Path, root: str | Path, cfg: Config,
+                progress: Callable[[int, int], None] | None = None) -> dict:
     """Copy the newest readable trials of ``source`` into a new replay at ``root`` (must not
-    exist) with ``cfg.replay``'s shards and capacity. Returns ``seeded_from`` (absolute source
-    path), ``trials`` (copied), ``available`` (readable trials listed in the source),
-    ``skipped`` (source trials lost: unreadable when the source was opened or copied, or evicted
-    meanwhile by a run still writing the source; the copy is not topped up with older ones) and
-    ``problems`` (one line each)."""
+    exist, unless it is an untouched copy of the same source: see the module text) with
+    ``cfg.replay``'s shards and capacity; ``progress(handled, to_copy)`` is called about every
+    five seconds while copying. Returns ``seeded_from`` (absolute source path), ``trials``
+    (copied), ``available`` (readable trials listed in the source), ``skipped`` (source trials
+    lost: unreadable when the source was opened or copied, or evicted meanwhile by a run still
+    writing the source; the copy is not topped up with older ones), ``problems`` (one line
+    each) and ``reused`` (True when ``root`` was such an untouched copy, then ``available`` is
+    its trial count and ``skipped`` 0)."""
     src = source_root(source).resolve()
     root = Path(root)
     if root.exists():
+        kept = _untouched_seeded_replay(root, src, cfg.replay.shards)
+        if kept is not None:
+            return {"seeded_from": str(src), "trials": kept, "available": kept, "skipped": 0, "problems": [],
+                    "reused": True}
         raise ReplayError(
             f"{root}: replay.seed_from: this run directory already has a replay (a new run seeds an empty "
             f"one); remove it or choose another --run-dir"
@@ -123,7 +158,12 @@ def seed_replay(source: str | Path, root: str | Path, cfg: Config) -> dict:
             table = trial_table(readers)
             available = len(table["trial_id"])
             copied, failed = 0, 0
-            for n in range(max(0, available - cfg.replay.capacity), available):
+            first = max(0, available - cfg.replay.capacity)
+            last_report = time.monotonic()
+            for n in range(first, available):
+                if progress is not None and time.monotonic() - last_report >= PROGRESS_EVERY_S:
+                    progress(n - first, available - first)
+                    last_report = time.monotonic()
                 reader = readers[int(table["shard"][n])]
                 try:
                     rec = reader.encoded(int(table["trial_id"][n]), (SEED_CLIENT, copied))
@@ -148,4 +188,4 @@ def seed_replay(source: str | Path, root: str | Path, cfg: Config) -> dict:
             raise ReplayError(f"{staging}: replay.seed_from: copying {src} failed ({type(e).__name__}: {e})") from None
         raise
     return {"seeded_from": str(src), "trials": copied, "available": available, "skipped": lost + failed,
-            "problems": problems}
+            "problems": problems, "reused": False}

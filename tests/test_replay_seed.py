@@ -256,3 +256,42 @@ def test_launcher_seeds_a_new_run_once_and_records_the_source(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "replay.seed_from" in err[0] and "nothing" in err[0], err
     assert not (tmp_path / "bad" / "config.yaml").exists() and not (tmp_path / "bad" / "replay").exists()
     assert not (tmp_path / "bad").exists(), "a refused run leaves no run directory behind"
+
+
+def test_start_cut_off_before_its_config_reuses_the_untouched_seeded_replay(tmp_path, capsys):
+    cfg = load_config("tiny")
+    for s in _source(tmp_path / "old" / "replay", cfg, 3):
+        s.close()
+    run = tmp_path / "run"
+    assert not seed_replay(tmp_path / "old", run / "replay", cfg)["reused"]  # renamed; config.yaml never written
+    before = _digest(run / "replay")
+    args = ["--config", "tiny", "--run-dir", str(run), "--set", f"replay.seed_from={tmp_path / 'old'}"]
+    resolved, _ = resolve(parse_args(args))
+    assert "replay already seeded with 3 trials" in capsys.readouterr().out
+    assert _digest(run / "replay") == before, "the seeded replay is used as it is"
+    assert load_config(run / "config.yaml").replay.seed_from == str((tmp_path / "old" / "replay").resolve())
+    other = tmp_path / "other"
+    for s in _source(other / "replay", cfg, 2):
+        s.close()
+    assert not seed_replay(tmp_path / "old", tmp_path / "run2" / "replay", cfg)["reused"]
+    with pytest.raises(ReplayError, match="already has a replay"):
+        seed_replay(other, tmp_path / "run2" / "replay", cfg)  # seeded from another source
+    shards = open_local_shards(tmp_path / "run2" / "replay", cfg)
+    client = ReplayClient(shards, cfg, seed=0)
+    client.insert(numbered_trial(cfg, 99, n_objects=1, n_obstacles=0).validate())
+    client.flush()
+    for s in shards:
+        s.close()
+    with pytest.raises(ReplayError, match="already has a replay"):
+        seed_replay(tmp_path / "old", tmp_path / "run2" / "replay", cfg)  # a trial of its own arrived
+
+
+def test_seeding_reports_progress(tmp_path, monkeypatch):
+    cfg = tiny_cfg(capacity=16, shards=2)
+    for sh in _source(tmp_path / "old", cfg, 9):
+        sh.close()
+    monkeypatch.setattr("replay.seed.PROGRESS_EVERY_S", 0.0)
+    calls = []
+    report = seed_replay(tmp_path / "old", tmp_path / "new" / "replay", cfg, progress=lambda d, t: calls.append((d, t)))
+    assert report["trials"] == 9
+    assert calls == [(d, 9) for d in range(9)], calls
