@@ -411,7 +411,7 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m launcher evaluate compare",
         description="Compare two evaluation results of one cell on the scenes they share: a scene-bootstrap "
-        "95%% interval of the rate difference B - A and a scene-swap permutation test.",
+        "95% interval of the rate difference B - A and a scene-swap permutation test.",
     )
     ap.add_argument("a", metavar="A.json", help="result written by evaluate --json (the baseline)")
     ap.add_argument("b", metavar="B.json", help="result written by evaluate --json (compared against A)")

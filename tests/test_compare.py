@@ -436,3 +436,8 @@ def test_pooling_refuses_a_scene_twice_or_another_row(tmp_path, capsys):
     assert ev.cli(["compare", a, b, "--also", a2, fewer]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "grippers ['wsg_50']" in err
+
+
+def test_help_prints_the_interval_text_as_written():
+    text = cmp._parser().format_help()
+    assert "95% interval" in " ".join(text.split()) and "%%" not in text
