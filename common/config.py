@@ -278,9 +278,10 @@ class LearnerConfig:
     publish_every: int = 20
     """Learner steps between weight publications."""
     ema_decay: float = 0.0
-    """Decay of an exponential moving average of the weights, updated every learner step; when
-    above 0 the average is what actors act with and what checkpoints carry as the model (the
-    trained weights are kept in latest.pt for resuming); 0 = off."""
+    """Decay of an exponential moving average of the weights, updated every learner step; the
+    decay used at update n is min(ema_decay, (1 + n) / (10 + n)), so 0.999 takes effect from
+    update 8,990 on; when above 0 the average is what actors act with and what checkpoints
+    carry as the model (the trained weights are kept in latest.pt for resuming); 0 = off."""
     init_weights: str = ""
     """Checkpoint (a path or model:NAME) whose model weights start a new run, i.e. fine-tuning
     (the optimiser, counters and epsilon schedule start fresh; its network and grids must match
