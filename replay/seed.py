@@ -40,7 +40,7 @@ import zarr
 from common.config import Config
 from replay.inspect import open_readers, trial_table
 from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
-from replay.shard import ReplayCorruptWarning, ReplayShard, ensure_root, shard_path
+from replay.shard import ReplayCorruptWarning, ReplayShard, ensure_root, read_kind, shard_path
 
 SEED_CLIENT = -2
 """Client id in the insert token of a copied trial (actors use ids >= 0, a plain insert -1)."""
@@ -100,16 +100,15 @@ def _untouched_seeded_replay(root: Path, src: Path, n_shards: int) -> int | None
     """The trial count of ``root`` when it is a complete replay seeded from ``src`` with
     ``n_shards`` shards that holds nothing but its seeded trials; None otherwise."""
     try:
-        attrs = dict(zarr.open_group(str(root), mode="r").attrs.get(ATTR_KEY, {}))
-        if attrs.get("seeded_from") != str(src):
+        if (read_kind(root) or {}).get("seeded_from") != str(src):
             return None
         readers = open_readers(root)
-    except (ReplayError, OSError, ValueError, KeyError):
+    except (ReplayError, OSError):
         return None
     try:
         if len(readers) != n_shards or any(r.stats()["end"] != r.seeded_trials for r in readers):
             return None
-        return int(attrs.get("seeded_trials", 0))
+        return sum(r.seeded_trials for r in readers)
     finally:
         for r in readers:
             r.close()
