@@ -16,9 +16,11 @@ The copy is built in ``RUN/replay.seeding`` and renamed to ``RUN/replay`` when c
 a cut-off seeding leaves no replay behind (the folder is removed by the next attempt). A start
 stopped after that rename but before its ``config.yaml`` was written leaves a complete seeded
 replay that no trial of the run has reached yet; seeding it again from the same source reuses
-it (``reused`` in the report) instead of refusing the run directory. A source
-whose grids, quantisation, rotations or grasp depth differ from the new run's is refused with
-one line naming the source shard and the attribute; nothing is written then. The source is
+it (``reused`` in the report) instead of refusing the run directory; if the config now gives
+other grids, quantisation, rotations, grasp depth or capacity than it was made with, it is
+refused with one line naming the shard and the attribute and left untouched. A source whose
+grids, quantisation, rotations or grasp depth differ from the new run's is refused with one
+line naming the source shard and the attribute, before anything is written. The source is
 only read, and may be a run that is still writing it.
 
 Usage::
@@ -40,7 +42,14 @@ import zarr
 from common.config import Config
 from replay.inspect import open_readers, trial_table
 from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
-from replay.shard import ReplayCorruptWarning, ReplayShard, ensure_root, read_kind, shard_path
+from replay.shard import (
+    ReplayCorruptWarning,
+    ReplayShard,
+    ensure_root,
+    read_kind,
+    shard_attributes,
+    shard_path,
+)
 
 SEED_CLIENT = -2
 """Client id in the insert token of a copied trial (actors use ids >= 0, a plain insert -1)."""
@@ -83,22 +92,32 @@ def _difference(key: str, have, want) -> tuple[str, object, object] | None:
     return None if have == want else (key, have, want)
 
 
-def _check_matching(readers: list[ReplayShard], want: dict) -> None:
+REUSE_ATTRIBUTES = MATCHING_ATTRIBUTES + ("capacity", "num_shards")
+"""Shard attributes an untouched seeded replay must also share with the run that reuses it."""
+
+
+def _check_matching(readers: list[ReplayShard], cfg: Config, keys: tuple[str, ...], holder: str,
+                    advice: str) -> None:
+    """Raise one line naming the first shard and attribute in ``keys`` whose stored value differs
+    from what a shard created from ``cfg`` would store; ``holder`` names the stored side."""
     for r in readers:
+        want = shard_attributes(cfg, r.shard_index, cfg.replay.shards)
         have = r.info()
-        for key in MATCHING_ATTRIBUTES:
+        for key in keys:
             found = _difference(key, have.get(key), want.get(key))
             if found:
                 name, a, b = found
                 raise ReplaySchemaError(
-                    f"{r.path}: attributes.{ATTR_KEY}.{name}: source has {a!r}, this run's config gives {b!r} "
-                    f"(replay.seed_from)"
+                    f"{r.path}: attributes.{ATTR_KEY}.{name}: {holder} has {a!r}, this run's config gives {b!r} "
+                    f"(replay.seed_from{advice})"
                 )
 
 
-def _untouched_seeded_replay(root: Path, src: Path, n_shards: int) -> int | None:
+def _untouched_seeded_replay(root: Path, src: Path, cfg: Config) -> int | None:
     """The trial count of ``root`` when it is a complete replay seeded from ``src`` with
-    ``n_shards`` shards that holds nothing but its seeded trials; None otherwise."""
+    ``cfg.replay.shards`` shards that holds nothing but its seeded trials; None otherwise.
+    Such a replay made with other grids, rotations, grasp depth or capacity than ``cfg`` gives
+    is refused with one line naming the shard and the attribute."""
     try:
         if (read_kind(root) or {}).get("seeded_from") != str(src):
             return None
@@ -106,8 +125,10 @@ def _untouched_seeded_replay(root: Path, src: Path, n_shards: int) -> int | None
     except (ReplayError, OSError):
         return None
     try:
-        if len(readers) != n_shards or any(r.stats()["end"] != r.seeded_trials for r in readers):
+        if len(readers) != cfg.replay.shards or any(r.stats()["end"] != r.seeded_trials for r in readers):
             return None
+        _check_matching(readers, cfg, REUSE_ATTRIBUTES, "the replay already seeded here",
+                        f"; remove {root} to seed it again with this config")
         return sum(r.seeded_trials for r in readers)
     finally:
         for r in readers:
@@ -128,7 +149,7 @@ def seed_replay(source: str | Path, root: str | Path, cfg: Config,
     src = source_root(source).resolve()
     root = Path(root)
     if root.exists():
-        kept = _untouched_seeded_replay(root, src, cfg.replay.shards)
+        kept = _untouched_seeded_replay(root, src, cfg)
         if kept is not None:
             return {"seeded_from": str(src), "trials": kept, "available": kept, "skipped": 0, "problems": [],
                     "reused": True}
@@ -146,6 +167,7 @@ def seed_replay(source: str | Path, root: str | Path, cfg: Config,
                 readers = open_readers(src)
             except ReplaySchemaError as e:
                 raise ReplaySchemaError(f"{e} (replay.seed_from)") from None
+            _check_matching(readers, cfg, MATCHING_ATTRIBUTES, "source", "")
             lost = sum(r.stats()["lost"] for r in readers)
             problems = [line for r in readers for line in r.problems()]
             if staging.exists():
@@ -153,7 +175,6 @@ def seed_replay(source: str | Path, root: str | Path, cfg: Config,
             ensure_root(staging, n_shards)
             shards = [ReplayShard(shard_path(staging, k), cfg, shard_index=k, num_shards=n_shards)
                       for k in range(n_shards)]
-            _check_matching(readers, shards[0].info())
             table = trial_table(readers)
             available = len(table["trial_id"])
             copied, failed = 0, 0

@@ -116,6 +116,46 @@ def shard_path(root: str | Path, index: int) -> Path:
     return Path(root) / SHARD_NAME.format(index=index)
 
 
+def shard_attributes(cfg: Config, shard_index: int, num_shards: int) -> dict:
+    """The schema attributes a shard created from ``cfg`` stores under ``ATTR_KEY`` (all but
+    its creation time): shapes, capacity, quantisation, the grids and the action's meaning."""
+    rc = cfg.replay
+    capacity = shard_capacity(rc.capacity, num_shards)
+    slots = capacity + 1
+    specs = array_specs(
+        slots, slots, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
+    )
+    scene_grid = to_dict(cfg.scene_grid)
+    scene_grid["truncation"] = cfg.scene_grid.truncation
+    gripper_grid = to_dict(cfg.gripper_grid)
+    gripper_grid["truncation"] = cfg.gripper_grid.truncation
+    return {
+        "kind": SHARD_KIND,
+        "schema_version": SCHEMA_VERSION,
+        "shard_index": shard_index,
+        "num_shards": num_shards,
+        "capacity": capacity,
+        "slots": slots,
+        "table_rows": slots,
+        "chunk_trials": min(rc.chunk_trials, slots),
+        "scene_shape": list(cfg.scene_grid.shape),
+        "gripper_shape": list(cfg.gripper_grid.shape),
+        "tsdf_levels": rc.tsdf_levels,
+        "obstacle_levels": OBSTACLE_LEVELS,
+        "heightmap_step_m": HEIGHTMAP_STEP,
+        "max_abs_error": max_errors(rc.tsdf_levels),
+        "rotations": cfg.model.rotations,
+        "grasp_depth_m": cfg.sim.grasp_depth,
+        "scene_grid": scene_grid,
+        "gripper_grid": gripper_grid,
+        "visibility": "trial t is visible iff commit[0] <= t < commit[1] and trial_id[t % slots] == t",
+        "arrays": {
+            s.name: {"shape": list(s.shape), "chunks": list(s.chunks), "dtype": s.dtype, "units": s.units}
+            for s in specs
+        },
+    }
+
+
 def read_kind(path: str | Path) -> dict | None:
     """The replay attributes of the Zarr group at ``path``, or None if it is not a replay group."""
     p = Path(path)
@@ -306,11 +346,9 @@ class ReplayShard:
 
     def _create(self, cfg: Config, shard_index: int, num_shards: int) -> None:
         rc = cfg.replay
-        capacity = shard_capacity(rc.capacity, num_shards)
-        slots = capacity + 1
-        table_rows = capacity + 1
+        slots = shard_capacity(rc.capacity, num_shards) + 1
         specs = array_specs(
-            slots, table_rows, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
+            slots, slots, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
         )
         self.path.mkdir(parents=True, exist_ok=True)
         group = zarr.create_group(str(self.path))
@@ -328,36 +366,7 @@ class ReplayShard:
                 chunk_key_encoding={"name": "default", "separator": "."},
             )
         group["commit"][:] = np.array([0, 0], np.int64)
-        scene_grid = to_dict(cfg.scene_grid)
-        scene_grid["truncation"] = cfg.scene_grid.truncation
-        gripper_grid = to_dict(cfg.gripper_grid)
-        gripper_grid["truncation"] = cfg.gripper_grid.truncation
-        attrs = {
-            "kind": SHARD_KIND,
-            "schema_version": SCHEMA_VERSION,
-            "shard_index": shard_index,
-            "num_shards": num_shards,
-            "capacity": capacity,
-            "slots": slots,
-            "table_rows": table_rows,
-            "chunk_trials": min(rc.chunk_trials, slots),
-            "scene_shape": list(cfg.scene_grid.shape),
-            "gripper_shape": list(cfg.gripper_grid.shape),
-            "tsdf_levels": rc.tsdf_levels,
-            "obstacle_levels": OBSTACLE_LEVELS,
-            "heightmap_step_m": HEIGHTMAP_STEP,
-            "max_abs_error": max_errors(rc.tsdf_levels),
-            "rotations": cfg.model.rotations,
-            "grasp_depth_m": cfg.sim.grasp_depth,
-            "scene_grid": scene_grid,
-            "gripper_grid": gripper_grid,
-            "created": time.time(),
-            "visibility": "trial t is visible iff commit[0] <= t < commit[1] and trial_id[t % slots] == t",
-            "arrays": {
-                s.name: {"shape": list(s.shape), "chunks": list(s.chunks), "dtype": s.dtype, "units": s.units}
-                for s in specs
-            },
-        }
+        attrs = {**shard_attributes(cfg, shard_index, num_shards), "created": time.time()}
         group.attrs[ATTR_KEY] = attrs  # last: a group without it is an incomplete creation
 
     def _open(self, cfg: Config | None, shard_index: int, num_shards: int) -> None:

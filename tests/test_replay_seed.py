@@ -286,6 +286,28 @@ def test_start_cut_off_before_its_config_reuses_the_untouched_seeded_replay(tmp_
         seed_replay(tmp_path / "old", tmp_path / "run2" / "replay", cfg)  # a trial of its own arrived
 
 
+def test_untouched_seeded_replay_made_with_another_config_is_refused_in_one_line(tmp_path, capsys):
+    cfg = load_config("tiny")
+    for s in _source(tmp_path / "old" / "replay", cfg, 3):
+        s.close()
+    run = tmp_path / "run"
+    seed_replay(tmp_path / "old", run / "replay", cfg)  # a start cut off before its config.yaml
+    before = _digest(run / "replay")
+    other = load_config("tiny", overrides=["model.rotations=8"])
+    with pytest.raises(ReplaySchemaError) as e:  # action rotation indices would mean other angles
+        seed_replay(tmp_path / "old", run / "replay", other)
+    line = str(e.value)
+    assert "\n" not in line and "shard_000" in line and "rotations: the replay already seeded here has 16" in line
+    assert "gives 8" in line and "replay.seed_from" in line and f"remove {run / 'replay'}" in line, line
+    rc = cli(["--actors", "0", "--config", "tiny", "--run-dir", str(run),
+              "--set", f"replay.seed_from={tmp_path / 'old'}", "--set", "replay.capacity=1000"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "capacity: the replay already seeded here has 1000" in err[0], err
+    assert "gives 500" in err[0], err
+    assert _digest(run / "replay") == before and not (run / "config.yaml").exists(), "nothing written, nothing lost"
+    assert seed_replay(tmp_path / "old", run / "replay", cfg)["reused"], "with its own config it is still reused"
+
+
 def test_seeding_reports_progress(tmp_path, monkeypatch):
     cfg = tiny_cfg(capacity=16, shards=2)
     for sh in _source(tmp_path / "old", cfg, 9):
