@@ -122,8 +122,9 @@ def shard_attributes(cfg: Config, shard_index: int, num_shards: int) -> dict:
     rc = cfg.replay
     capacity = shard_capacity(rc.capacity, num_shards)
     slots = capacity + 1
+    table_rows = capacity + 1  # every visible trial may hold its own gripper-table row
     specs = array_specs(
-        slots, slots, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
+        slots, table_rows, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
     )
     scene_grid = to_dict(cfg.scene_grid)
     scene_grid["truncation"] = cfg.scene_grid.truncation
@@ -136,7 +137,7 @@ def shard_attributes(cfg: Config, shard_index: int, num_shards: int) -> dict:
         "num_shards": num_shards,
         "capacity": capacity,
         "slots": slots,
-        "table_rows": slots,
+        "table_rows": table_rows,
         "chunk_trials": min(rc.chunk_trials, slots),
         "scene_shape": list(cfg.scene_grid.shape),
         "gripper_shape": list(cfg.gripper_grid.shape),
@@ -346,9 +347,10 @@ class ReplayShard:
 
     def _create(self, cfg: Config, shard_index: int, num_shards: int) -> None:
         rc = cfg.replay
-        slots = shard_capacity(rc.capacity, num_shards) + 1
+        attrs = {**shard_attributes(cfg, shard_index, num_shards), "created": time.time()}
         specs = array_specs(
-            slots, slots, cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape), rc.chunk_trials, rc.tsdf_levels
+            attrs["slots"], attrs["table_rows"], cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape),
+            rc.chunk_trials, rc.tsdf_levels,
         )
         self.path.mkdir(parents=True, exist_ok=True)
         group = zarr.create_group(str(self.path))
@@ -366,7 +368,6 @@ class ReplayShard:
                 chunk_key_encoding={"name": "default", "separator": "."},
             )
         group["commit"][:] = np.array([0, 0], np.int64)
-        attrs = {**shard_attributes(cfg, shard_index, num_shards), "created": time.time()}
         group.attrs[ATTR_KEY] = attrs  # last: a group without it is an incomplete creation
 
     def _open(self, cfg: Config | None, shard_index: int, num_shards: int) -> None:
