@@ -45,6 +45,7 @@ from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
 from replay.shard import (
     ReplayCorruptWarning,
     ReplayShard,
+    attribute_difference,
     ensure_root,
     read_kind,
     shard_attributes,
@@ -81,17 +82,6 @@ def _set_attributes(path: Path, **values) -> None:
     group.attrs[ATTR_KEY] = {**dict(group.attrs[ATTR_KEY]), **values}
 
 
-def _difference(key: str, have, want) -> tuple[str, object, object] | None:
-    """The first (dotted key, source value, run value) where two attribute values differ."""
-    if isinstance(have, dict) and isinstance(want, dict):
-        for k in sorted(set(have) | set(want)):
-            found = _difference(f"{key}.{k}", have.get(k), want.get(k))
-            if found:
-                return found
-        return None
-    return None if have == want else (key, have, want)
-
-
 REUSE_ATTRIBUTES = MATCHING_ATTRIBUTES + ("capacity", "num_shards")
 """Shard attributes an untouched seeded replay must also share with the run that reuses it."""
 
@@ -104,7 +94,7 @@ def _check_matching(readers: list[ReplayShard], cfg: Config, keys: tuple[str, ..
         want = shard_attributes(cfg, r.shard_index, cfg.replay.shards)
         have = r.info()
         for key in keys:
-            found = _difference(key, have.get(key), want.get(key))
+            found = attribute_difference(key, have.get(key), want.get(key))
             if found:
                 name, a, b = found
                 raise ReplaySchemaError(

@@ -157,6 +157,25 @@ def shard_attributes(cfg: Config, shard_index: int, num_shards: int) -> dict:
     }
 
 
+CONFIG_ATTRIBUTES = (
+    "capacity", "scene_shape", "gripper_shape", "tsdf_levels", "num_shards", "shard_index",
+    "rotations", "grasp_depth_m", "scene_grid", "gripper_grid",
+)
+"""Shard attributes an existing shard must share with the config it is opened with: a trial
+stored under other grids, rotations or grasp depth would mean something else to the run."""
+
+
+def attribute_difference(key: str, have, want) -> tuple[str, object, object] | None:
+    """The first (dotted key, stored value, wanted value) where two attribute values differ."""
+    if isinstance(have, dict) and isinstance(want, dict):
+        for k in sorted(set(have) | set(want)):
+            found = attribute_difference(f"{key}.{k}", have.get(k), want.get(k))
+            if found:
+                return found
+        return None
+    return None if have == want else (key, have, want)
+
+
 def read_kind(path: str | Path) -> dict | None:
     """The replay attributes of the Zarr group at ``path``, or None if it is not a replay group."""
     p = Path(path)
@@ -403,18 +422,13 @@ class ReplayShard:
         """Trials copied in from an earlier replay before the run began (trial numbers
         0..seeded_trials-1; replay.seed); 0 for a shard that started empty."""
         if cfg is not None:
-            expected = {
-                "capacity": shard_capacity(cfg.replay.capacity, num_shards),
-                "scene_shape": list(cfg.scene_grid.shape),
-                "gripper_shape": list(cfg.gripper_grid.shape),
-                "tsdf_levels": cfg.replay.tsdf_levels,
-                "num_shards": num_shards,
-                "shard_index": shard_index,
-            }
-            for key, want in expected.items():
-                if attrs.get(key) != want:
+            want = shard_attributes(cfg, shard_index, num_shards)
+            for key in CONFIG_ATTRIBUTES:
+                found = attribute_difference(key, attrs.get(key), want[key])
+                if found:
+                    name, stored, given = found
                     raise ReplaySchemaError(
-                        f"{p}: attributes.{ATTR_KEY}.{key}: stored {attrs.get(key)!r}, config gives {want!r}"
+                        f"{p}: attributes.{ATTR_KEY}.{name}: stored {stored!r}, config gives {given!r}"
                     )
         if self.slots != self.capacity + 1:
             raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}.slots: expected capacity + 1, got {self.slots}")

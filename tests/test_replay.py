@@ -279,6 +279,29 @@ def test_shard_shape_mismatch_is_refused(tmp_path):
     assert "scene_shape" in one_line(e) and str(tmp_path / "s") in str(e.value)
 
 
+def test_shard_reopened_with_other_rotations_depth_or_truncation_is_refused(tmp_path):
+    """Same shapes, other meaning: a stored action index or TSDF value would be read wrongly
+    (e.g. a run resumed with --set model.rotations=8), so opening is refused in one line."""
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    shard.insert(make_trial(cfg, 0))
+    shard.close()
+    files = {q: q.read_bytes() for q in sorted((tmp_path / "s").rglob("*")) if q.is_file()}
+    rotations, depth, truncation = tiny_cfg(), tiny_cfg(), tiny_cfg()
+    rotations.model.rotations = cfg.model.rotations // 2
+    depth.sim.grasp_depth = cfg.sim.grasp_depth + 0.01
+    truncation.scene_grid.truncation_voxels = cfg.scene_grid.truncation_voxels + 1.0
+    for other, field in ((rotations, "rotations"), (depth, "grasp_depth_m"), (truncation, "scene_grid.truncation")):
+        with pytest.raises(ReplaySchemaError) as e:
+            ReplayShard(tmp_path / "s", other)
+        line = one_line(e)
+        assert f"attributes.adagrasp_replay.{field}: stored" in line and "config gives" in line, line
+    assert {q: q.read_bytes() for q in sorted((tmp_path / "s").rglob("*")) if q.is_file()} == files
+    reopened = ReplayShard(tmp_path / "s", tiny_cfg())
+    assert reopened.stats()["visible"] == 1
+    reopened.close()
+
+
 def test_bad_schema_version_names_path_and_touches_nothing(tmp_path):
     cfg = tiny_cfg()
     shard = ReplayShard(tmp_path / "s", cfg)
