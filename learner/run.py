@@ -44,6 +44,21 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def _check_replay(root: Path, cfg: Config) -> None:
+    """Open a resumed run's shards read-only with its config before anything starts, so that
+    overrides its stored trials cannot take (other rotations, grids, capacity or shard count)
+    are refused in one line here, not inside a replay actor."""
+    import warnings
+
+    from replay.client import open_local_shards
+    from replay.shard import ReplayCorruptWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReplayCorruptWarning)  # reported once the run opens them
+        for shard in open_local_shards(root, cfg, read_only=True):
+            shard.close()
+
+
 def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     """Config (from the run dir when resuming, limits in cfg.run) and run directory."""
     if args.resume:
@@ -71,6 +86,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         cfg.run.max_trials = args.max_trials
     if args.max_minutes is not None:
         cfg.run.max_minutes = args.max_minutes
+    if args.resume and (run_dir / "replay" / "zarr.json").is_file():
+        _check_replay(run_dir / "replay", cfg)
     from learner.loop import checkpoint_path
 
     if cfg.learner.init_weights and not checkpoint_path(run_dir).is_file():

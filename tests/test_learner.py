@@ -361,3 +361,25 @@ def test_resume_and_export_rewrite_an_absolute_record_of_a_shipped_source(filled
         assert record == {**old, "file": "assets/models/gone-net/checkpoint.pt"}, record
     local = {"init_weights": str(tmp_path / "a.pt"), "file": str(tmp_path / "a.pt"), "step": 1, "version": 1}
     assert ck.portable_init_source(local) == local and ck.portable_init_source(None) is None
+
+
+def test_resume_with_overrides_its_replay_cannot_take_is_refused_in_one_line(tmp_path, capsys):
+    """--resume --set model.rotations=8 (or another shard count) would read the stored trials'
+    actions at other angles: refused before anything starts, config and replay untouched."""
+    from learner.run import cli, parse_args, resolve
+
+    run = tmp_path / "run"
+    cfg, _ = resolve(parse_args(["--config", "tiny", "--run-dir", str(run)]))
+    shards = open_local_shards(run / "replay", cfg)
+    shards[0].insert(synthetic_trial(np.random.default_rng(0), cfg.scene_grid, cfg.gripper_grid, 1))
+    for s in shards:
+        s.close()
+    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    for extra, field in ((["--set", "model.rotations=8"], "rotations: stored 16, config gives 8"),
+                         (["--shards", "3"], "capacity: stored 1000, config gives 667")):
+        rc = cli(["--resume", "--run-dir", str(run), "--actors", "0", *extra])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and "shard_000" in err[0] and field in err[0], err
+    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
+    resumed, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
+    assert resumed.model.rotations == 16
