@@ -45,18 +45,20 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def _check_replay(root: Path, cfg: Config) -> None:
-    """Open a resumed run's shards read-only with its config before anything starts, so that
-    overrides its stored trials cannot take (other rotations, grids, capacity or shard count)
-    are refused in one line here, not inside a replay actor."""
+    """Open a resumed run's existing shards read-only with its config before anything starts, so
+    that overrides its stored trials cannot take (other rotations, grids, capacity or shard
+    count) are refused in one line here, not inside a replay actor. A missing shard is left to
+    the run, which creates it as before."""
     import warnings
 
-    from replay.client import open_local_shards
-    from replay.shard import ReplayCorruptWarning
+    from replay.shard import ReplayCorruptWarning, ReplayShard, shard_path
 
+    n = cfg.replay.shards
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReplayCorruptWarning)  # reported once the run opens them
-        for shard in open_local_shards(root, cfg, read_only=True):
-            shard.close()
+        for k in range(n):
+            if (shard_path(root, k) / "zarr.json").is_file():
+                ReplayShard(shard_path(root, k), cfg, shard_index=k, num_shards=n, read_only=True).close()
 
 
 def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
