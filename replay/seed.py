@@ -43,6 +43,7 @@ from common.config import Config
 from replay.inspect import open_readers, trial_table
 from replay.schema import ATTR_KEY, ReplayError, ReplaySchemaError
 from replay.shard import (
+    CONFIG_ATTRIBUTES,
     ReplayCorruptWarning,
     ReplayShard,
     attribute_difference,
@@ -82,10 +83,6 @@ def _set_attributes(path: Path, **values) -> None:
     group.attrs[ATTR_KEY] = {**dict(group.attrs[ATTR_KEY]), **values}
 
 
-REUSE_ATTRIBUTES = MATCHING_ATTRIBUTES + ("capacity", "num_shards")
-"""Shard attributes an untouched seeded replay must also share with the run that reuses it."""
-
-
 def _check_matching(readers: list[ReplayShard], cfg: Config, keys: tuple[str, ...], holder: str,
                     advice: str) -> None:
     """Raise one line naming the first shard and attribute in ``keys`` whose stored value differs
@@ -117,7 +114,7 @@ def _untouched_seeded_replay(root: Path, src: Path, cfg: Config) -> int | None:
     try:
         if len(readers) != cfg.replay.shards or any(r.stats()["end"] != r.seeded_trials for r in readers):
             return None
-        _check_matching(readers, cfg, REUSE_ATTRIBUTES, "the replay already seeded here",
+        _check_matching(readers, cfg, CONFIG_ATTRIBUTES, "the replay already seeded here",
                         f"; remove {root} to seed it again with this config")
         return sum(r.seeded_trials for r in readers)
     finally:
