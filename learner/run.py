@@ -44,23 +44,6 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _check_replay(root: Path, cfg: Config) -> None:
-    """Open a resumed run's existing shards read-only with its config before anything starts, so
-    that overrides its stored trials cannot take (other rotations, grids, capacity or shard
-    count) are refused in one line here, not inside a replay actor. A missing shard is left to
-    the run, which creates it as before."""
-    import warnings
-
-    from replay.shard import ReplayCorruptWarning, ReplayShard, shard_path
-
-    n = cfg.replay.shards
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ReplayCorruptWarning)  # reported once the run opens them
-        for k in range(n):
-            if (shard_path(root, k) / "zarr.json").is_file():
-                ReplayShard(shard_path(root, k), cfg, shard_index=k, num_shards=n, read_only=True).close()
-
-
 def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     """Config (from the run dir when resuming, limits in cfg.run) and run directory."""
     if args.resume:
@@ -88,8 +71,12 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         cfg.run.max_trials = args.max_trials
     if args.max_minutes is not None:
         cfg.run.max_minutes = args.max_minutes
-    if args.resume and (run_dir / "replay" / "zarr.json").is_file():
-        _check_replay(run_dir / "replay", cfg)
+    if (run_dir / "replay" / "zarr.json").is_file() and (args.resume or not cfg.replay.seed_from):
+        # Stored trials the config cannot take are refused here, before config.yaml is written
+        # (a replay about to be seeded is checked by seed_replay, naming the seeding).
+        from replay.shard import check_shards
+
+        check_shards(run_dir / "replay", cfg)
     from learner.loop import checkpoint_path
 
     if cfg.learner.init_weights and not checkpoint_path(run_dir).is_file():

@@ -32,7 +32,7 @@ from common.config import Config
 from common.observation import Trial
 from replay.sampler import BufferPool, draw_balanced, draw_counts
 from replay.schema import ReplayEmptyError, ReplayError, ReplaySchemaError, encode_trial, scene_scales
-from replay.shard import ReplayShard, ensure_root, shard_path
+from replay.shard import ReplayShard, check_shards, ensure_root, shard_path
 
 SAMPLE_ROUNDS = 4
 """Draw rounds per batch when trials are evicted or found corrupt between index and read."""
@@ -356,8 +356,14 @@ def remote_shard_class(cfg: Config):
 
 
 def start_remote_shards(root: str | Path, cfg: Config, name_prefix: str | None = None) -> list[Any]:
-    """K shard actors under ``root``; a restarted actor reopens its group and keeps every committed trial."""
+    """K shard actors under ``root``; a restarted actor reopens its group and keeps every committed trial.
+
+    Existing shards are first opened here with ``cfg`` (:func:`replay.shard.check_shards`): one
+    its config cannot take raises in one line, instead of failing in its actor's constructor,
+    which Ray reports as tracebacks and restarts.
+    """
     k = cfg.replay.shards
+    check_shards(root, cfg)
     ensure_root(root, k)
     cls = remote_shard_class(cfg)
     handles = []

@@ -235,6 +235,23 @@ def ensure_root(root: str | Path, num_shards: int) -> Path:
     return p
 
 
+def check_shards(root: str | Path, cfg: Config) -> None:
+    """Open the shards that exist under ``root`` read-only with ``cfg``, and close them.
+
+    A config their stored trials cannot take (other rotations, grids, quantisation, capacity or
+    shard count) raises :class:`ReplaySchemaError` in one line naming the shard and the field,
+    with nothing written. Call it in the process that starts a run, before shards are placed in
+    Ray actors, where the same error would reach the user as actor tracebacks. Missing shards
+    are skipped (the run creates them); corrupt-chunk warnings are left to the run's own open.
+    """
+    n = cfg.replay.shards
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ReplayCorruptWarning)
+        for k in range(n):
+            if (shard_path(root, k) / "zarr.json").is_file():
+                ReplayShard(shard_path(root, k), cfg, shard_index=k, num_shards=n, read_only=True).close()
+
+
 class _ChunkIO:
     """Reads and writes whole chunks of one array straight from and to their files.
 

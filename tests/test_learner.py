@@ -383,3 +383,25 @@ def test_resume_with_overrides_its_replay_cannot_take_is_refused_in_one_line(tmp
     assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
     resumed, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
     assert resumed.model.rotations == 16
+
+
+def test_new_run_in_a_folder_whose_replay_its_config_cannot_take_is_refused_in_one_line(tmp_path, capsys):
+    """A run directory holding a replay but no config.yaml (deleted, or copied in by hand) starts a
+    new run: shards its config cannot open are one line and rc 2 before anything is written, and
+    the stored trials are untouched."""
+    from learner.run import cli, parse_args, resolve
+
+    run = tmp_path / "run"
+    cfg, _ = resolve(parse_args(["--config", "tiny", "--run-dir", str(run)]))
+    shards = open_local_shards(run / "replay", cfg)
+    shards[0].insert(synthetic_trial(np.random.default_rng(0), cfg.scene_grid, cfg.gripper_grid, 1))
+    for s in shards:
+        s.close()
+    (run / "config.yaml").unlink()
+    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    rc = cli(["--config", "tiny", "--run-dir", str(run), "--actors", "0", "--max-trials", "1", "--quiet",
+              "--set", "model.rotations=8"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert "shard_000" in err[0] and "rotations: stored 16, config gives 8" in err[0], err
+    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before, "nothing written"

@@ -1,5 +1,5 @@
-"""Replay shards as Ray actors: restart after a kill keeps committed trials; sampling while a
-separate Ray worker inserts. Slow (starts a local Ray cluster): run with ``-m slow``."""
+"""Replay shards as Ray actors: a shard its actor cannot open is one line naming it; restart after
+a kill keeps committed trials; sampling while a separate Ray worker inserts (slow: ``-m slow``)."""
 
 from __future__ import annotations
 
@@ -8,11 +8,10 @@ import os
 import numpy as np
 import pytest
 
-from replay.client import ReplayClient, start_remote_shards
+from replay.client import ReplayClient, open_local_shards, start_remote_shards
+from replay.schema import ReplayError
 from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
-
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture
@@ -23,6 +22,26 @@ def ray_local():
     ray.shutdown()
 
 
+def test_shard_its_actor_cannot_open_is_one_line_naming_it(tmp_path, ray_local):
+    """A config the stored trials cannot take used to fail in the shard actors' constructors,
+    which Ray reports as tracebacks and restarts; the shards are now opened in this process
+    first, and the error names the shard and the field, with nothing written."""
+    cfg = tiny_cfg(capacity=64, shards=2)
+    for shard in open_local_shards(tmp_path / "r", cfg):
+        shard.insert(make_trial(cfg, 0))
+        shard.close()
+    before = {p: p.read_bytes() for p in sorted((tmp_path / "r").rglob("*")) if p.is_file()}
+    other = tiny_cfg(capacity=64, shards=2)
+    other.model.rotations = 8
+    with pytest.raises(ReplayError) as e:
+        start_remote_shards(tmp_path / "r", other)
+    line = str(e.value)
+    assert "\n" not in line and "shard_000" in line and "rotations: stored 16, config gives 8" in line, line
+    assert {p: p.read_bytes() for p in sorted((tmp_path / "r").rglob("*")) if p.is_file()} == before
+    assert len(start_remote_shards(tmp_path / "r", cfg)) == 2, "with its own config the replay still opens"
+
+
+@pytest.mark.slow
 def test_ray_shards_restart_and_sample_while_inserting(tmp_path, ray_local):
     ray = ray_local
     cfg = tiny_cfg(capacity=64, shards=2)
