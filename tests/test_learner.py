@@ -363,24 +363,36 @@ def test_resume_and_export_rewrite_an_absolute_record_of_a_shipped_source(filled
     assert ck.portable_init_source(local) == local and ck.portable_init_source(None) is None
 
 
-def test_resume_with_overrides_its_replay_cannot_take_is_refused_in_one_line(tmp_path, capsys):
-    """--resume --set model.rotations=8 (or another shard count) would read the stored trials'
-    actions at other angles: refused before anything starts, config and replay untouched."""
-    from learner.run import cli, parse_args, resolve
+def _tiny_run_with_one_trial(run):
+    """A tiny-config run directory (config.yaml and replay) holding one stored trial."""
+    from learner.run import parse_args, resolve
 
-    run = tmp_path / "run"
     cfg, _ = resolve(parse_args(["--config", "tiny", "--run-dir", str(run)]))
     shards = open_local_shards(run / "replay", cfg)
     shards[0].insert(synthetic_trial(np.random.default_rng(0), cfg.scene_grid, cfg.gripper_grid, 1))
     for s in shards:
         s.close()
-    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    return run
+
+
+def _files(folder):
+    """Every file under ``folder`` with its bytes."""
+    return {p: p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_resume_with_overrides_its_replay_cannot_take_is_refused_in_one_line(tmp_path, capsys):
+    """--resume --set model.rotations=8 (or another shard count) would read the stored trials'
+    actions at other angles: refused before anything starts, config and replay untouched."""
+    from learner.run import cli, parse_args, resolve
+
+    run = _tiny_run_with_one_trial(tmp_path / "run")
+    before = _files(run)
     for extra, field in ((["--set", "model.rotations=8"], "rotations: stored 16, config gives 8"),
                          (["--shards", "3"], "capacity: stored 1000, config gives 667")):
         rc = cli(["--resume", "--run-dir", str(run), "--actors", "0", *extra])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and "shard_000" in err[0] and field in err[0], err
-    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before
+    assert _files(run) == before
     resumed, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
     assert resumed.model.rotations == 16
 
@@ -389,19 +401,14 @@ def test_new_run_in_a_folder_whose_replay_its_config_cannot_take_is_refused_in_o
     """A run directory holding a replay but no config.yaml (deleted, or copied in by hand) starts a
     new run: shards its config cannot open are one line and rc 2 before anything is written, and
     the stored trials are untouched."""
-    from learner.run import cli, parse_args, resolve
+    from learner.run import cli
 
-    run = tmp_path / "run"
-    cfg, _ = resolve(parse_args(["--config", "tiny", "--run-dir", str(run)]))
-    shards = open_local_shards(run / "replay", cfg)
-    shards[0].insert(synthetic_trial(np.random.default_rng(0), cfg.scene_grid, cfg.gripper_grid, 1))
-    for s in shards:
-        s.close()
+    run = _tiny_run_with_one_trial(tmp_path / "run")
     (run / "config.yaml").unlink()
-    before = {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+    before = _files(run)
     rc = cli(["--config", "tiny", "--run-dir", str(run), "--actors", "0", "--max-trials", "1", "--quiet",
               "--set", "model.rotations=8"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1, err
     assert "shard_000" in err[0] and "rotations: stored 16, config gives 8" in err[0], err
-    assert {p: p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()} == before, "nothing written"
+    assert _files(run) == before, "nothing written"
