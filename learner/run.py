@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights
+from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights, network_difference, read_checkpoint
 from common.config import Config, ConfigError, load_config, save_config
 from common.files import atomic_write_text
 from replay.schema import ReplayError
@@ -71,6 +71,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         cfg.run.max_trials = args.max_trials
     if args.max_minutes is not None:
         cfg.run.max_minutes = args.max_minutes
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"{run_dir}: --run-dir: exists and is not a folder")
     if (run_dir / "replay" / "zarr.json").is_file() and (args.resume or not cfg.replay.seed_from):
         # Stored trials the config cannot take are refused here, before config.yaml is written
         # (a replay about to be seeded is checked by seed_replay, naming the seeding).
@@ -79,7 +81,16 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         check_shards(run_dir / "replay", cfg)
     from learner.loop import checkpoint_path
 
-    if cfg.learner.init_weights and not checkpoint_path(run_dir).is_file():
+    own = checkpoint_path(run_dir)
+    if own.is_file():
+        # A run with a checkpoint of its own continues from it: an unreadable one, or one of another
+        # network than the config's, is refused here in one line, before anything starts.
+        differ = network_difference(cfg, read_checkpoint(own).cfg)
+        if differ:
+            key, mine, stored = differ
+            raise CheckpointError(f"{own}: {key} is {stored!r} there but {mine!r} in this run's config; "
+                                  f"a resumed run keeps its network")
+    elif cfg.learner.init_weights:
         # A run without a checkpoint of its own (new, or stopped before its first one) starts
         # from init_weights: check it here, before anything starts, and make a path absolute,
         # since Ray worker processes need not share the driver's working directory.
@@ -119,6 +130,9 @@ def cli(argv: list[str]) -> int:
         cfg, run_dir = resolve(args)
     except (ConfigError, CheckpointError, ReplayError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a run directory that cannot be made or written: the file and the reason
+        print(f"error: {e.filename}: {e.strerror}", file=sys.stderr)
         return 2
     from learner.loop import run_distributed, run_local
 

@@ -211,18 +211,31 @@ def find_shards(path: str | Path) -> list[Path]:
 
 
 def ensure_root(root: str | Path, num_shards: int) -> Path:
-    """Create (or check) the replay root group that holds ``num_shards`` shard groups."""
+    """Create (or check, :func:`check_root`) the replay root group that holds ``num_shards`` shard groups."""
+    p = Path(root)
+    if check_root(p, num_shards):
+        return p
+    p.mkdir(parents=True, exist_ok=True)
+    zarr.create_group(
+        str(p),
+        attributes={ATTR_KEY: {"kind": ROOT_KIND, "schema_version": SCHEMA_VERSION, "num_shards": num_shards}},
+    )
+    return p
+
+
+def check_root(root: str | Path, num_shards: int) -> bool:
+    """Whether a replay root group of ``num_shards`` shards exists at ``root``; writes nothing.
+
+    Raises :class:`ReplaySchemaError` in one line naming the file and the field when ``root``
+    holds unreadable group metadata, a group that is not a replay root, another schema version
+    or another shard count.
+    """
     p = Path(root)
     attrs = read_kind(p)
     if attrs is None:
         if (p / "zarr.json").exists():
             raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}: existing group is not a replay root")
-        p.mkdir(parents=True, exist_ok=True)
-        zarr.create_group(
-            str(p),
-            attributes={ATTR_KEY: {"kind": ROOT_KIND, "schema_version": SCHEMA_VERSION, "num_shards": num_shards}},
-        )
-        return p
+        return False
     if attrs.get("schema_version") != SCHEMA_VERSION:
         raise ReplaySchemaError(
             f"{p}: attributes.{ATTR_KEY}.schema_version: expected {SCHEMA_VERSION}, got {attrs.get('schema_version')!r}"
@@ -232,19 +245,21 @@ def ensure_root(root: str | Path, num_shards: int) -> Path:
             f"{p}: attributes.{ATTR_KEY}.num_shards: replay root has {attrs.get('num_shards')!r} shards, "
             f"config asks for {num_shards}"
         )
-    return p
+    return True
 
 
 def check_shards(root: str | Path, cfg: Config) -> None:
-    """Open the shards that exist under ``root`` read-only with ``cfg``, and close them.
+    """Check the replay root (:func:`check_root`), then open the shards that exist under ``root``
+    read-only with ``cfg`` and close them.
 
-    A config their stored trials cannot take (other rotations, grids, quantisation, capacity or
-    shard count) raises :class:`ReplaySchemaError` in one line naming the shard and the field,
-    with nothing written. Call it in the process that starts a run, before shards are placed in
+    A root that is unreadable or holds another shard count, or a config the stored trials cannot
+    take (other rotations, grids, quantisation or capacity), raises :class:`ReplaySchemaError` in
+    one line naming the file or shard and the field, with nothing written. Call it in the process that starts a run, before shards are placed in
     Ray actors, where the same error would reach the user as actor tracebacks. Missing shards
     are skipped (the run creates them); corrupt-chunk warnings are left to the run's own open.
     """
     n = cfg.replay.shards
+    check_root(root, n)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReplayCorruptWarning)
         for k in range(n):
@@ -1010,6 +1025,7 @@ __all__ = [
     "ReplayCorruptWarning",
     "StoredTrial",
     "disk_usage",
+    "check_root",
     "ensure_root",
     "find_shards",
     "shard_capacity",

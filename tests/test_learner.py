@@ -387,11 +387,13 @@ def test_resume_with_overrides_its_replay_cannot_take_is_refused_in_one_line(tmp
 
     run = _tiny_run_with_one_trial(tmp_path / "run")
     before = _files(run)
-    for extra, field in ((["--set", "model.rotations=8"], "rotations: stored 16, config gives 8"),
-                         (["--shards", "3"], "capacity: stored 1000, config gives 667")):
+    for extra, where, field in (
+        (["--set", "model.rotations=8"], "replay/shard_000", "rotations: stored 16, config gives 8"),
+        (["--shards", "3"], "replay", "num_shards: replay root has 2 shards, config asks for 3"),
+    ):
         rc = cli(["--resume", "--run-dir", str(run), "--actors", "0", *extra])
         err = capsys.readouterr().err.strip().splitlines()
-        assert rc == 2 and len(err) == 1 and "shard_000" in err[0] and field in err[0], err
+        assert rc == 2 and len(err) == 1 and f"{run / where}:" in err[0] and field in err[0], err
     assert _files(run) == before
     resumed, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
     assert resumed.model.rotations == 16
@@ -412,3 +414,52 @@ def test_new_run_in_a_folder_whose_replay_its_config_cannot_take_is_refused_in_o
     assert rc == 2 and len(err) == 1, err
     assert "shard_000" in err[0] and "rotations: stored 16, config gives 8" in err[0], err
     assert _files(run) == before, "nothing written"
+
+
+def test_resume_from_an_unreadable_checkpoint_or_with_another_network_is_refused_in_one_line(tmp_path, capsys):
+    """--resume of a run whose latest.pt is damaged, or with a --set that builds another network
+    than its checkpoint's, is one line and rc 2 before anything starts (both were tracebacks from
+    inside the run), with every file untouched."""
+    from learner.loop import LearnerProcess, checkpoint_path
+    from learner.run import cli, parse_args, resolve
+
+    run = _tiny_run_with_one_trial(tmp_path / "run")
+    cfg, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
+    shards = open_local_shards(run / "replay", cfg)
+    LearnerProcess(cfg, shards, str(run), seed=0, torch_threads=1).checkpoint(epsilon=0.5, inserted=1)
+    for s in shards:
+        s.close()
+    ckpt = checkpoint_path(run)
+    before = _files(run)
+    rc = cli(["--resume", "--run-dir", str(run), "--actors", "0", "--set", "model.variant=scene-only"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert f"{ckpt}: model.variant is 'adagrasp' there but 'scene-only'" in err[0], err
+    assert _files(run) == before
+    ckpt.write_bytes(before[ckpt][:1000])
+    damaged = _files(run)
+    rc = cli(["--resume", "--run-dir", str(run), "--actors", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and f"{ckpt}: not a readable checkpoint" in err[0], err
+    assert _files(run) == damaged
+
+
+def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_refused_in_one_line(tmp_path, capsys):
+    """--run-dir naming a file, or a folder whose replay root metadata is damaged, is one line
+    and rc 2 (both were tracebacks), and nothing is written: no config.yaml, the file as it was."""
+    from learner.run import cli
+
+    start = ["--config", "tiny", "--actors", "0", "--max-trials", "1", "--quiet", "--run-dir"]
+    taken = tmp_path / "notes.txt"
+    taken.write_text("mine")
+    rc = cli([*start, str(taken)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == [f"error: {taken}: --run-dir: exists and is not a folder"], err
+    assert taken.read_text() == "mine"
+    run = tmp_path / "run"
+    (run / "replay").mkdir(parents=True)
+    (run / "replay" / "zarr.json").write_text("{")
+    rc = cli([*start, str(run)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and f"{run / 'replay' / 'zarr.json'}: unreadable group metadata" in err[0], err
+    assert _files(run) == {run / "replay" / "zarr.json": b"{"}
