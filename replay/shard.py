@@ -254,9 +254,10 @@ def check_shards(root: str | Path, cfg: Config) -> None:
 
     A root that is unreadable or holds another shard count, or a config the stored trials cannot
     take (other rotations, grids, quantisation or capacity), raises :class:`ReplaySchemaError` in
-    one line naming the file or shard and the field, with nothing written. Call it in the process that starts a run, before shards are placed in
-    Ray actors, where the same error would reach the user as actor tracebacks. Missing shards
-    are skipped (the run creates them); corrupt-chunk warnings are left to the run's own open.
+    one line naming the file or shard and the field, with nothing written. Call it in the process
+    that starts a run, before shards are placed in Ray actors, where the same error would reach
+    the user as actor tracebacks. Missing shards are skipped (the run creates them); corrupt-chunk
+    warnings are left to the run's own open.
     """
     n = cfg.replay.shards
     check_root(root, n)

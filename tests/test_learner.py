@@ -445,8 +445,9 @@ def test_resume_from_an_unreadable_checkpoint_or_with_another_network_is_refused
 
 
 def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_refused_in_one_line(tmp_path, capsys):
-    """--run-dir naming a file, or a folder whose replay root metadata is damaged, is one line
-    and rc 2 (both were tracebacks), and nothing is written: no config.yaml, the file as it was."""
+    """--run-dir naming a file, a folder inside a file, or a folder whose replay root metadata is
+    damaged, is one line and rc 2 (all were tracebacks), and nothing is written: no config.yaml,
+    the file as it was."""
     from learner.run import cli
 
     start = ["--config", "tiny", "--actors", "0", "--max-trials", "1", "--quiet", "--run-dir"]
@@ -455,6 +456,10 @@ def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_re
     rc = cli([*start, str(taken)])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and err == [f"error: {taken}: --run-dir: exists and is not a folder"], err
+    assert taken.read_text() == "mine"
+    rc = cli([*start, str(taken / "run")])  # a folder that cannot be made: the OSError, in one line
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == [f"error: {taken / 'run'}: Not a directory"], err
     assert taken.read_text() == "mine"
     run = tmp_path / "run"
     (run / "replay").mkdir(parents=True)
