@@ -132,7 +132,8 @@ def cli(argv: list[str]) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # a run directory that cannot be made or written: the file and the reason
-        print(f"error: {e.filename}: {e.strerror}", file=sys.stderr)
+        where = e.filename or args.run_dir or "the run directory"  # some OSErrors name no file
+        print(f"error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
     from learner.loop import run_distributed, run_local
 

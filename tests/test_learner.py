@@ -1,6 +1,8 @@
 """Learner: rate limiting, a real training step on synthetic trials, score write-back, save/restore."""
 
 import copy
+import errno
+import os
 
 import numpy as np
 import pytest
@@ -444,10 +446,14 @@ def test_resume_from_an_unreadable_checkpoint_or_with_another_network_is_refused
     assert _files(run) == damaged
 
 
-def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_refused_in_one_line(tmp_path, capsys):
+def _raise_no_space(*args, **kwargs):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_refused_in_one_line(tmp_path, capsys, monkeypatch):
     """--run-dir naming a file, a folder inside a file, or a folder whose replay root metadata is
     damaged, is one line and rc 2 (all were tracebacks), and nothing is written: no config.yaml,
-    the file as it was."""
+    the file as it was. An OSError that names no file names the run directory."""
     from learner.run import cli
 
     start = ["--config", "tiny", "--actors", "0", "--max-trials", "1", "--quiet", "--run-dir"]
@@ -461,6 +467,11 @@ def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_re
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and err == [f"error: {taken / 'run'}: Not a directory"], err
     assert taken.read_text() == "mine"
+    with monkeypatch.context() as m:  # an OSError that names no file: the run directory instead of 'None'
+        m.setattr("learner.run.save_config", _raise_no_space)
+        rc = cli([*start, str(tmp_path / "full")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and err == [f"error: {tmp_path / 'full'}: No space left on device"], err
     run = tmp_path / "run"
     (run / "replay").mkdir(parents=True)
     (run / "replay" / "zarr.json").write_text("{")
