@@ -156,6 +156,15 @@ POOL_KEYS = ("scene", "objects", "policy", "checkpoint", "cameras", "calibration
 """Result keys that must agree between the files pooled into one side."""
 
 
+def _poolable(key: str, value):
+    """What of a result's ``key`` must agree between pooled files: a calibration record without
+    its ``sha256`` (results written before the file hash was recorded lack it, and the source,
+    prior and per-gripper fits still name the calibration), anything else as it is."""
+    if key == "calibration" and isinstance(value, dict):
+        return {k: v for k, v in value.items() if k != "sha256"}
+    return value
+
+
 def pool(sides: list[Side]) -> Side:
     """One side from the paired sides of several results of one row (other scene seeds): their
     scenes side by side. Raises :class:`EvaluationError` (one line naming the file and the key)
@@ -166,7 +175,12 @@ def pool(sides: list[Side]) -> Side:
     seen: dict[int, str] = {}
     for s in sides:
         for key in POOL_KEYS:
-            if s.summary.get(key) != first.summary.get(key):
+            mine, theirs = _poolable(key, s.summary.get(key)), _poolable(key, first.summary.get(key))
+            if isinstance(mine, dict) and isinstance(theirs, dict) and mine != theirs:
+                differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
+                raise EvaluationError(f"{s.path}: {key}: differs from {first.path} in {', '.join(differ)}: "
+                                      "only results of one row pool")
+            if mine != theirs:
                 raise EvaluationError(f"{s.path}: {key}: {s.summary.get(key)!r}, but {first.path} has "
                                       f"{first.summary.get(key)!r}: only results of one row pool")
         if s.grippers != first.grippers:

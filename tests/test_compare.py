@@ -438,6 +438,30 @@ def test_pooling_refuses_a_scene_twice_or_another_row(tmp_path, capsys):
     assert "\n" not in err and "grippers ['wsg_50']" in err
 
 
+def test_pooling_reads_a_calibration_the_same_with_or_without_its_file_hash(tmp_path, capsys):
+    """A calibrated result written before the calibration file's hash was recorded pools with one
+    that records it; a calibration with another fit is another row, named in one line."""
+    fits = {"wsg_50": {"shift": -0.98, "trials": 56, "successes": 46, "mean_score": 0.92},
+            "panda_hand": {"shift": 0.68, "trials": 52, "successes": 49, "mean_score": 0.89}}
+    cal = {"source": "calibration/fit.json", "prior_sigma": 2.0, "grippers": fits}
+    ada = [(3, 5), (2, 4), (4, 5), (1, 5), (3, 3)]
+    per = {"wsg_50": FG_A["wsg_50"], "panda_hand": FG_A["panda_hand"]}
+    later = [21, 22, 23, 24, 25]
+    files = {"a": write(tmp_path, "a", result("fix-gripper", per, SEEDS)),
+             "a2": write(tmp_path, "a2", result("fix-gripper", per, later))}
+    for name, seeds, record in (("b", SEEDS, cal), ("b2", later, {**cal, "sha256": "ab" * 32}),
+                                ("c2", later, {**cal, "sha256": "ab" * 32, "grippers": {
+                                    **fits, "wsg_50": {**fits["wsg_50"], "shift": -0.5}}})):
+        data = result("adagrasp", ada, seeds)
+        data["calibration"] = record
+        files[name] = write(tmp_path, name, data)
+    pooled = cmp.compare_cli([files["a"], files["b"], "--also", files["a2"], files["b2"], "--resamples", "500"])
+    assert pooled["scenes"] == 10 and pooled["b"]["attempts"] == 2 * sum(a for _, a in ada)
+    assert ev.cli(["compare", files["a"], files["b"], "--also", files["a2"], files["c2"]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "c2.json: calibration: differs from" in err and "in grippers:" in err
+
+
 def test_help_prints_the_interval_text_as_written():
     text = cmp._parser().format_help()
     assert "95% interval" in " ".join(text.split()) and "%%" not in text
