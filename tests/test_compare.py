@@ -445,10 +445,9 @@ def test_pooling_reads_a_calibration_the_same_with_or_without_its_file_hash(tmp_
             "panda_hand": {"shift": 0.68, "trials": 52, "successes": 49, "mean_score": 0.89}}
     cal = {"source": "calibration/fit.json", "prior_sigma": 2.0, "grippers": fits}
     ada = [(3, 5), (2, 4), (4, 5), (1, 5), (3, 3)]
-    per = {"wsg_50": FG_A["wsg_50"], "panda_hand": FG_A["panda_hand"]}
     later = [21, 22, 23, 24, 25]
-    files = {"a": write(tmp_path, "a", result("fix-gripper", per, SEEDS)),
-             "a2": write(tmp_path, "a2", result("fix-gripper", per, later))}
+    files = {"a": write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS)),
+             "a2": write(tmp_path, "a2", result("fix-gripper", FG_A, later))}
     for name, seeds, record in (("b", SEEDS, cal), ("b2", later, {**cal, "sha256": "ab" * 32}),
                                 ("c2", later, {**cal, "sha256": "ab" * 32, "grippers": {
                                     **fits, "wsg_50": {**fits["wsg_50"], "shift": -0.5}}})):
