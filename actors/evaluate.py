@@ -285,7 +285,8 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
     """The calibration of ``--calibration``, checked against this evaluation: the same checkpoint
-    file and weights version, openings, scale and config (but scene kind and object set), every
+    file and weights version, openings, scale and config (but scene kind and object set; a key
+    its config lacks was added since, and its default is what that evaluation ran with), every
     gripper, no shared scene; one-line errors naming the file and the key."""
     path = args.calibration
     data = read_result(path)
@@ -309,9 +310,17 @@ def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
         raise EvaluationError(f"{path}: scale: fitted with {data.get('scale')!r}, this evaluation uses {plan.scale}")
     if not isinstance(data.get("config"), dict):
         raise EvaluationError(f"{path}: config: missing (the resolved config of the calibration's evaluation)")
-    theirs, mine = _flat(data["config"]), _flat(to_dict(plan.cfg))
+    theirs, mine, defaults = _flat(data["config"]), _flat(to_dict(plan.cfg)), _flat(to_dict(Config()))
     for key in sorted(set(theirs) | set(mine)):
-        if key not in CALIBRATION_FREE and theirs.get(key) != mine.get(key):
+        if key in CALIBRATION_FREE:
+            continue
+        if key not in theirs and key in defaults:
+            if mine.get(key) != defaults[key]:
+                raise EvaluationError(
+                    f"{path}: config.{key}: fitted before the key existed (so with its default {defaults[key]!r}), "
+                    f"this evaluation uses {mine.get(key)!r}"
+                )
+        elif theirs.get(key) != mine.get(key):
             raise EvaluationError(
                 f"{path}: config.{key}: fitted with {theirs.get(key)!r}, this evaluation uses {mine.get(key)!r}"
             )

@@ -472,6 +472,8 @@ def test_calibrated_adagrasp_chooses_the_reliable_gripper(small, calibration_run
         ({"openings": None}, [], "openings: fitted with None"),
         ({"sim": ("lift_height", 0.3)}, [], "config.sim.lift_height: fitted with 0.3, this evaluation uses 0.2"),
         ({"sim": ("cameras", 2)}, [], "config.sim.cameras: fitted with 2, this evaluation uses 1"),
+        ({"sim": ("lift_height", None)}, ["--set", "sim.lift_height=0.3"],
+         "config.sim.lift_height: fitted before the key existed (so with its default 0.2), this evaluation uses 0.3"),
         ({"config": None}, [], "config: missing"),
         ({"no_seed": 1}, [], "episode_results[1]: scene_seed: missing or not an integer"),
     ],
@@ -485,7 +487,9 @@ def test_bad_calibration_is_one_line(small, calibration_run, tmp_path, capsys, c
     data = json.loads(json.dumps({**cal_result, **change}))
     if drop is not None:
         data["episode_results"] = [r for r in data["episode_results"] if r["gripper"] != drop]
-    if sim is not None:
+    if sim is not None and sim[1] is None:
+        del data["config"]["sim"][sim[0]]
+    elif sim is not None:
         data["config"]["sim"][sim[0]] = sim[1]
     if no_seed is not None:
         del data["episode_results"][no_seed]["scene_seed"]
@@ -499,6 +503,18 @@ def test_bad_calibration_is_one_line(small, calibration_run, tmp_path, capsys, c
     assert err.startswith("evaluate: error: ") and "\n" not in err and needle in err
     if "--calibration:" not in needle:
         assert str(cal) in err
+
+
+def test_calibration_fitted_before_a_config_key_existed(small, calibration_run, tmp_path):
+    """A calibration whose resolved config lacks a key added to the config since (written by an
+    earlier version) serves an evaluation that keeps that key at its default."""
+    data = json.loads(json.dumps(calibration_run[0]))
+    del data["config"]["replay"]["seed_from"]
+    cal = edited(data, tmp_path, "older-cal", winner=OTHER)
+    argv = [*learned_argv(small, "adagrasp", "adagrasp", f"{GRIPPER},{OTHER}", episodes=1), "--calibration", str(cal)]
+    rc, result, _ = run_cli(argv, tmp_path)
+    assert rc == 0 and result["calibration"]["source"] == str(cal)
+    assert all(t["gripper"] == OTHER for r in result["episode_results"] for t in r["trials"])
 
 
 def test_unreadable_calibration_is_one_line(small, tmp_path, capsys):
