@@ -176,13 +176,14 @@ def pool(sides: list[Side]) -> Side:
     for s in sides:
         for key in POOL_KEYS:
             mine, theirs = _poolable(key, s.summary.get(key)), _poolable(key, first.summary.get(key))
-            if isinstance(mine, dict) and isinstance(theirs, dict) and mine != theirs:
+            if mine == theirs:
+                continue
+            if isinstance(mine, dict) and isinstance(theirs, dict):
                 differ = sorted(k for k in mine.keys() | theirs.keys() if mine.get(k) != theirs.get(k))
                 raise EvaluationError(f"{s.path}: {key}: differs from {first.path} in {', '.join(differ)}: "
                                       "only results of one row pool")
-            if mine != theirs:
-                raise EvaluationError(f"{s.path}: {key}: {s.summary.get(key)!r}, but {first.path} has "
-                                      f"{first.summary.get(key)!r}: only results of one row pool")
+            raise EvaluationError(f"{s.path}: {key}: {s.summary.get(key)!r}, but {first.path} has "
+                                  f"{first.summary.get(key)!r}: only results of one row pool")
         if s.grippers != first.grippers:
             raise EvaluationError(f"{s.path}: grippers {s.grippers}: {first.path} pairs {first.grippers}")
         for seed in s.scene_seeds:

@@ -73,7 +73,7 @@ from actors.rollout import episode_seed
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
 from common.calibration import Calibration, calibration_from_result
 from common.checkpoint import CheckpointError, inference_config, read_checkpoint, resolve_checkpoint
-from common.config import Config, load_config, to_dict
+from common.config import Config, from_dict, load_config, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
@@ -285,8 +285,8 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
     """The calibration of ``--calibration``, checked against this evaluation: the same checkpoint
-    file and weights version, openings, scale and config (but scene kind and object set; a key
-    its config lacks was added since, and its default is what that evaluation ran with), every
+    file and weights version, openings, scale and config (but scene kind and object set; read as a
+    checkpoint's is, so a key added to the config since it was written takes its default), every
     gripper, no shared scene; one-line errors naming the file and the key."""
     path = args.calibration
     data = read_result(path)
@@ -310,19 +310,12 @@ def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
         raise EvaluationError(f"{path}: scale: fitted with {data.get('scale')!r}, this evaluation uses {plan.scale}")
     if not isinstance(data.get("config"), dict):
         raise EvaluationError(f"{path}: config: missing (the resolved config of the calibration's evaluation)")
-    theirs, mine, defaults = _flat(data["config"]), _flat(to_dict(plan.cfg)), _flat(to_dict(Config()))
-    for key in sorted(set(theirs) | set(mine)):
-        if key in CALIBRATION_FREE:
-            continue
-        if key not in theirs and key in defaults:
-            if mine.get(key) != defaults[key]:
-                raise EvaluationError(
-                    f"{path}: config.{key}: fitted before the key existed (so with its default {defaults[key]!r}), "
-                    f"this evaluation uses {mine.get(key)!r}"
-                )
-        elif theirs.get(key) != mine.get(key):
+    theirs = _flat(to_dict(from_dict(data["config"], source=f"{path}: config")))
+    mine = _flat(to_dict(plan.cfg))
+    for key in sorted(mine):
+        if key not in CALIBRATION_FREE and theirs[key] != mine[key]:
             raise EvaluationError(
-                f"{path}: config.{key}: fitted with {theirs.get(key)!r}, this evaluation uses {mine.get(key)!r}"
+                f"{path}: config.{key}: fitted with {theirs[key]!r}, this evaluation uses {mine[key]!r}"
             )
     if data["scene"] == plan.scene and data.get("objects") == plan.objects:
         evaluated = {episode_seed(plan.seed, e) for e in range(plan.episodes)}
