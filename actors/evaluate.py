@@ -601,17 +601,19 @@ def _cell(summary: dict) -> str:
     return f"{summary['objects_label']}/{summary['grippers_label']}"
 
 
-def _column_key(summary: dict, with_cameras: bool) -> tuple:
+def _column_key(summary: dict, with_cameras: bool, with_seeds: bool) -> tuple:
     cell = _cell(summary)
     order = CELL_ORDER.index(cell) if cell in CELL_ORDER else len(CELL_ORDER)
     cams = summary["cameras"] if with_cameras else 0
-    return (SCENE_KINDS.index(summary["scene"]), order, cell, cams)
+    seed = summary["seed"] if with_seeds else None
+    return (SCENE_KINDS.index(summary["scene"]), order, cell, cams, seed)
 
 
 def _column_title(key: tuple) -> str:
-    scene, _, cell, cams = key
-    title = f"{SCENE_KINDS[scene]} {cell}"
-    return title + (f" ({cams} cam{'s' if cams > 1 else ''})" if cams else "")
+    scene, _, cell, cams, seed = key
+    qualifiers = [f"{cams} cam{'s' if cams > 1 else ''}"] if cams else []
+    qualifiers += [f"seed {seed}"] if seed is not None else []
+    return f"{SCENE_KINDS[scene]} {cell}" + (f" ({', '.join(qualifiers)})" if qualifiers else "")
 
 
 def _fmt(rate: float | None) -> str:
@@ -620,11 +622,13 @@ def _fmt(rate: float | None) -> str:
 
 def table_markdown(results: list[tuple[str, dict]]) -> str:
     """Markdown of the paper's Table I layout: rows = policies, columns = scene kind x O x G (x
-    cameras when the results mix camera counts), then the sources and, for one result, its grippers."""
+    cameras when the results mix camera counts, x scene seed when they mix seeds), then the sources
+    and, for one result, its grippers."""
     with_cameras = len({s["cameras"] for _, s in results}) > 1
+    with_seeds = len({s["seed"] for _, s in results}) > 1
     cells: dict[tuple[str, tuple], tuple[str, dict]] = {}
     for path, s in results:
-        key = (row_label(s), _column_key(s, with_cameras))
+        key = (row_label(s), _column_key(s, with_cameras, with_seeds))
         if key in cells:
             raise EvaluationError(
                 f"{path}: policy {key[0]}, {_column_title(key[1])}: the same cell is already in {cells[key][0]}"

@@ -370,6 +370,25 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
         assert not md.exists()
 
 
+def test_table_splits_columns_by_scene_seed_when_results_mix_seeds(scripted, tmp_path, capsys):
+    """Results of one cell at two scene seeds are two columns, not a clash; each keeps its own
+    rate, and two results of one seed still clash."""
+    single, single_path = scripted("single", "heuristic")
+    seed2 = relabel(single, tmp_path, "seed2", seed=2, rate=0.5)
+    fix2 = relabel(single, tmp_path, "fix2", seed=2, policy="fix-gripper", rate=0.25)
+    capsys.readouterr()
+    assert ev.cli(["table", str(single_path), str(seed2), str(fix2)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert single["seed"] == 3
+    assert lines[0] == f"| policy | single O_tr/G_{GRIPPER} (seed 2) | single O_tr/G_{GRIPPER} (seed 3) |"
+    assert lines[2] == "| fix-gripper | 0.250 | – |"
+    assert lines[3] == f"| heuristic | 0.500 | {single['rate']:.3f} |"
+    again = relabel(single, tmp_path, "again", seed=2)
+    assert ev.cli(["table", str(single_path), str(seed2), str(again)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"single O_tr/G_{GRIPPER} (seed 2): the same cell is already in" in err
+
+
 def test_compare_pairs_two_real_runs_on_their_scenes(scripted, capsys):
     """``evaluate compare`` on two scripted runs of the same scenes: every scene pairs, and each
     side's rate is the rate its file reports."""
