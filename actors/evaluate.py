@@ -604,14 +604,14 @@ def _cell(summary: dict) -> str:
 def _column_key(summary: dict, with_cameras: bool, with_seeds: bool) -> tuple:
     cell = _cell(summary)
     order = CELL_ORDER.index(cell) if cell in CELL_ORDER else len(CELL_ORDER)
-    cams = summary["cameras"] if with_cameras else 0
+    cams = summary["cameras"] if with_cameras else None
     seed = summary["seed"] if with_seeds else None
     return (SCENE_KINDS.index(summary["scene"]), order, cell, cams, seed)
 
 
 def _column_title(key: tuple) -> str:
     scene, _, cell, cams, seed = key
-    qualifiers = [f"{cams} cam{'s' if cams > 1 else ''}"] if cams else []
+    qualifiers = [f"{cams} cam{'s' if cams > 1 else ''}"] if cams is not None else []
     qualifiers += [f"seed {seed}"] if seed is not None else []
     return f"{SCENE_KINDS[scene]} {cell}" + (f" ({', '.join(qualifiers)})" if qualifiers else "")
 
