@@ -152,8 +152,9 @@ def _side(path: str, summary: dict, episodes: dict, grippers: list[str | None], 
     return Side(path, summary, grippers, succ, att, tuple(dropped), unpaired, scene_seeds=tuple(scenes))
 
 
-POOL_KEYS = ("scene", "objects", "policy", "checkpoint", "cameras", "calibration")
-"""Result keys that must agree between the files pooled into one side."""
+POOL_KEYS = ("scene", "objects", "policy", "cameras", "calibration")
+"""Result keys that must agree between the files pooled into one side (and the model:
+:func:`_check_same_model`)."""
 
 
 def _poolable(key: str, value):
@@ -165,6 +166,22 @@ def _poolable(key: str, value):
     return value
 
 
+def _check_same_model(s: Side, first: Side) -> None:
+    """Pooled results must be of one model: the same ``checkpoint_sha256`` (network and weights)
+    when both record it, whatever they call the checkpoint; else the same ``checkpoint`` name
+    (results written before the digest was recorded). One-line error naming the file and key."""
+    mine, theirs = s.summary.get("checkpoint_sha256"), first.summary.get("checkpoint_sha256")
+    if mine is not None and theirs is not None:
+        if mine != theirs:
+            raise EvaluationError(f"{s.path}: checkpoint_sha256: {mine[:12]}..., but {first.path} has "
+                                  f"{theirs[:12]}...: only results of one model pool")
+        return
+    if s.summary.get("checkpoint") != first.summary.get("checkpoint"):
+        raise EvaluationError(f"{s.path}: checkpoint: {s.summary.get('checkpoint')!r}, but {first.path} has "
+                              f"{first.summary.get('checkpoint')!r}: only results of one row pool (results "
+                              "that name a checkpoint differently pool when both record checkpoint_sha256)")
+
+
 def pool(sides: list[Side]) -> Side:
     """One side from the paired sides of several results of one row (other scene seeds): their
     scenes side by side. Raises :class:`EvaluationError` (one line naming the file and the key)
@@ -174,6 +191,7 @@ def pool(sides: list[Side]) -> Side:
         return first
     seen: dict[int, str] = {}
     for s in sides:
+        _check_same_model(s, first)
         for key in POOL_KEYS:
             mine, theirs = _poolable(key, s.summary.get(key)), _poolable(key, first.summary.get(key))
             if mine == theirs:
@@ -363,6 +381,7 @@ def compare(sa: Side, sb: Side, resamples: int = BOOTSTRAP_RESAMPLES, seed: int 
             "path": s.path,
             "row": row_label(s.summary),
             "checkpoint": s.summary.get("checkpoint"),
+            "checkpoint_sha256": s.summary.get("checkpoint_sha256"),
             "cameras": s.summary.get("cameras"),
             "grippers": s.grippers,
             "candidates": _candidates(s.path, s.summary) if s.pooled else None,

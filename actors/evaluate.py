@@ -167,6 +167,9 @@ class EvalPlan:
     """Network state dict, CPU tensors (learned policies)."""
     model_version: int = -1
     """Weights version of the checkpoint."""
+    model_sha256: str | None = None
+    """:func:`common.checkpoint.model_sha256` of the checkpoint (learned policies): which network
+    and weights were evaluated, whatever the file was called."""
     encodings: list[np.ndarray] | None = None
     """Per gripper (S, 2, gX, gY, gZ) float32 encodings at ``scale`` and ``openings`` (learned policies)."""
     device: str = "cpu"
@@ -259,6 +262,7 @@ def make_plan(args) -> EvalPlan:
             f"this one is {ckpt.variant} (use --policy {hint})"
         )
     LearnedPolicy.from_checkpoint(args.checkpoint, cfg, mode=mode)  # grid and rotation checks, one line
+    plan.model_sha256 = ckpt.model_sha256()
     if args.calibration is not None:
         plan.calibration = _calibration(args, plan, ckpt.version)
     encoder = GripperEncoder(cfg.gripper_grid)
@@ -267,6 +271,23 @@ def make_plan(args) -> EvalPlan:
     plan.model_state = ckpt.model_state
     plan.model_version = ckpt.version
     return plan
+
+
+def _same_checkpoint_file(path: str, fitted_on, fitted_version, checkpoint: str, version: int) -> None:
+    """A calibration without ``checkpoint_sha256``: it must name the file of ``checkpoint`` (the
+    same path, or the same ``model:NAME``) at weights ``version``; one-line errors otherwise."""
+    try:
+        same = isinstance(fitted_on, str) and (
+            resolve_checkpoint(fitted_on).resolve() == resolve_checkpoint(checkpoint).resolve()
+        )
+    except CheckpointError as e:
+        raise EvaluationError(f"{path}: checkpoint: {e}") from None
+    if not same:
+        raise EvaluationError(f"{path}: checkpoint: fitted with {fitted_on!r}, this evaluation uses {checkpoint!r}")
+    if fitted_version != version:
+        raise EvaluationError(
+            f"{path}: checkpoint_version: fitted with weights v{fitted_version}, the checkpoint holds v{version}"
+        )
 
 
 CALIBRATION_FREE = ("sim.scene", "sim.objects")
@@ -284,25 +305,27 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 
 def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
-    """The calibration of ``--calibration``, checked against this evaluation: the same checkpoint
-    file and weights version, openings, scale and config (but scene kind and object set; read as a
-    checkpoint's is, so a key added to the config since it was written takes its default), every
-    gripper, no shared scene; one-line errors naming the file and the key."""
+    """The calibration of ``--calibration``, checked against this evaluation: the same network and
+    weights, openings, scale and config (but scene kind and object set; read as a checkpoint's
+    is, so a key added to the config since it was written takes its default), every gripper, no
+    shared scene; one-line errors naming the file and the key.
+
+    The network and weights agree by ``checkpoint_sha256`` when the calibration records it,
+    whatever either file is called (a run's checkpoint and the model exported from it); a
+    calibration written before that digest was recorded must name the same checkpoint file and
+    weights version."""
     path = args.calibration
     data = read_result(path)
     fitted_on = data.get("checkpoint")
-    try:
-        same = isinstance(fitted_on, str) and (
-            resolve_checkpoint(fitted_on).resolve() == resolve_checkpoint(args.checkpoint).resolve()
-        )
-    except CheckpointError as e:
-        raise EvaluationError(f"{path}: checkpoint: {e}") from None
-    if not same:
-        raise EvaluationError(f"{path}: checkpoint: fitted with {fitted_on!r}, this evaluation uses {args.checkpoint!r}")
-    if data.get("checkpoint_version") != version:
-        raise EvaluationError(
-            f"{path}: checkpoint_version: fitted with weights v{data.get('checkpoint_version')}, the checkpoint holds v{version}"
-        )
+    digest = data.get("checkpoint_sha256")
+    if digest is not None:
+        if digest != plan.model_sha256:
+            raise EvaluationError(
+                f"{path}: checkpoint_sha256: fitted with network and weights {str(digest)[:12]}... "
+                f"({fitted_on!r}), {args.checkpoint!r} holds {plan.model_sha256[:12]}..."
+            )
+    else:
+        _same_checkpoint_file(path, fitted_on, data.get("checkpoint_version"), args.checkpoint, version)
     openings = data.get("openings")
     if not isinstance(openings, list) or openings != list(plan.openings):
         raise EvaluationError(f"{path}: openings: fitted with {openings}, this evaluation uses {list(plan.openings)}")
@@ -781,6 +804,7 @@ def evaluate(argv: list[str]) -> dict:
         "checkpoint": args.checkpoint,
         "checkpoint_variant": plan.model_cfg.model.variant if plan.model_cfg is not None else None,
         "checkpoint_version": plan.model_version if plan.model_cfg is not None else None,
+        "checkpoint_sha256": plan.model_sha256,
         "calibration": plan.calibration.to_dict() if plan.calibration is not None else None,
         "actors": args.actors,
         "wall_s": time.perf_counter() - t0,

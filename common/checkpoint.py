@@ -20,6 +20,8 @@ Call loop::
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,6 +60,11 @@ class Checkpoint:
     """Optimiser state dict, if saved."""
     extra: dict = field(default_factory=dict)
     """Every other key of the file (e.g. the learner's own state)."""
+
+    def model_sha256(self) -> str:
+        """:func:`model_sha256` of this checkpoint's network: the same for every file that holds
+        these weights for this network (a run's checkpoint and the model exported from it)."""
+        return model_sha256(self.cfg, self.model_state)
 
 
 def save_checkpoint(
@@ -248,6 +255,31 @@ def network_difference(mine: Config, theirs: Config) -> tuple[str, object, objec
         if a != b:
             return key, a, b
     return None
+
+
+def model_sha256(cfg: Config, model_state: dict) -> str:
+    """SHA-256 (hex) of what fixes a network's output: the values of :data:`NETWORK_KEYS` in
+    ``cfg`` and every tensor of ``model_state`` (name, dtype, shape and bytes, in name order).
+
+    Files that differ only in counters, optimiser state, paths or other config keys give the same
+    digest; any changed weight, dtype or network key gives another.
+    """
+    flat = to_dict(cfg)
+    network = {}
+    for key in NETWORK_KEYS:
+        value = flat
+        for part in key.split("."):
+            value = value[part]
+        network[key] = value
+    digest = hashlib.sha256(json.dumps(network, sort_keys=True).encode())
+    for name in sorted(model_state):
+        tensor = model_state[name]
+        if not isinstance(tensor, torch.Tensor):
+            raise CheckpointError(f"model.{name}: expected a tensor, got {type(tensor).__name__}")
+        data = tensor.detach().to("cpu").contiguous().reshape(-1)
+        digest.update(f"{name}|{data.dtype}|{tuple(tensor.shape)}|".encode())
+        digest.update(data.view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 
 def initial_weights(cfg: Config) -> Checkpoint | None:

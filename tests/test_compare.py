@@ -421,6 +421,28 @@ def test_pooled_seeds_equal_one_result_of_all_their_scenes(tmp_path, capsys):
     assert f"+ {files['b2']}" in capsys.readouterr().out
 
 
+def test_pooling_follows_the_model_digest_over_the_checkpoint_name(tmp_path):
+    """Results that name one model differently (a run's file, then the exported model) pool when
+    both record the same checkpoint_sha256; one name with two digests does not, and without a
+    digest on both sides the names decide."""
+    later = [21, 22, 23, 24, 25]
+    a, b = (write(tmp_path, n, {**result("fix-gripper", t, SEEDS), "checkpoint": "runs/x/averaged.pt",
+                                "checkpoint_sha256": "ab" * 32}) for n, t in (("a", FG_A), ("b", FG_B)))
+    a2, b2 = (write(tmp_path, n, {**result("fix-gripper", t, later), "checkpoint": "model:x",
+                                  "checkpoint_sha256": "ab" * 32}) for n, t in (("a2", FG_A), ("b2", FG_B)))
+    pooled = cmp.compare_cli([a, b, "--also", a2, b2])
+    assert pooled["scenes"] == 10 and pooled["a"]["checkpoint_sha256"] == "ab" * 32
+    other = write(tmp_path, "other", {**result("fix-gripper", FG_B, later), "checkpoint": "runs/x/averaged.pt",
+                                      "checkpoint_sha256": "cd" * 32})
+    with pytest.raises(ev.EvaluationError, match=r"other\.json: checkpoint_sha256: cdcdcdcdcdcd\.\.\., but .*b\.json "
+                                                 r"has abababababab\.\.\.: only results of one model pool"):
+        cmp.compare_cli([a, b, "--also", a2, other])
+    unrecorded = write(tmp_path, "old", {**result("fix-gripper", FG_B, later), "checkpoint": "model:x"})
+    with pytest.raises(ev.EvaluationError, match=r"old\.json: checkpoint: 'model:x', but .*b\.json has "
+                                                 r"'runs/x/averaged\.pt'"):
+        cmp.compare_cli([a, b, "--also", a2, unrecorded])
+
+
 def test_pooling_refuses_a_scene_twice_or_another_row(tmp_path, capsys):
     a = write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS))
     b = write(tmp_path, "b", result("fix-gripper", FG_B, SEEDS))

@@ -12,7 +12,7 @@ import yaml
 from actors import evaluate as ev
 from actors.grasp import FAILURE_MODES
 from actors.rollout import episode_seed
-from common.checkpoint import save_checkpoint
+from common.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from common.config import load_config
 from common.network import build_model
 
@@ -192,6 +192,7 @@ def test_learned_per_gripper_policies(small, tmp_path, policy):
     rc, result, _ = run_cli(learned_argv(small, policy, "adagrasp", f"{GRIPPER},{OTHER}"), tmp_path)
     assert rc == 0
     assert result["checkpoint_variant"] == "adagrasp" and result["checkpoint_version"] == 7
+    assert result["checkpoint_sha256"] == read_checkpoint(small[1]["adagrasp"]).model_sha256()
     assert result["openings"] == [0.5, 0.75, 1.0]
     assert set(result["per_gripper"]) == {GRIPPER, OTHER}
     assert all(v["episodes"] == 2 and v["attempts"] == 2 for v in result["per_gripper"].values())
@@ -480,9 +481,12 @@ def test_calibrated_adagrasp_chooses_the_reliable_gripper(small, calibration_run
         ({}, ["--policy", "fix-gripper"], "--calibration: only --policy adagrasp compares grippers"),
         ({"policy": "adagrasp"}, [], "policy: a calibration is fitted to fix-gripper trials"),
         ({}, ["--seed", "5"], "scene_seeds: the calibration trials share 2 scenes with this evaluation"),
-        ({"checkpoint_version": 8}, [], "checkpoint_version: fitted with weights v8, the checkpoint holds v7"),
-        ({"checkpoint": "elsewhere.pt"}, [], "checkpoint: fitted with 'elsewhere.pt'"),
-        ({"checkpoint": "model:no_such_model"}, [], "checkpoint: model:no_such_model: no shipped model"),
+        ({"checkpoint_sha256": "0" * 64}, [], "checkpoint_sha256: fitted with network and weights 000000000000..."),
+        ({"checkpoint_sha256": None, "checkpoint_version": 8}, [],
+         "checkpoint_version: fitted with weights v8, the checkpoint holds v7"),
+        ({"checkpoint_sha256": None, "checkpoint": "elsewhere.pt"}, [], "checkpoint: fitted with 'elsewhere.pt'"),
+        ({"checkpoint_sha256": None, "checkpoint": "model:no_such_model"}, [],
+         "checkpoint: model:no_such_model: no shipped model"),
         ({"openings": [0.5, 1.0]}, [], "openings: fitted with [0.5, 1.0]"),
         ({"drop": OTHER}, [], f"episode_results: no trials of gripper {OTHER}"),
         ({"format": "other"}, [], "format: expected"),
@@ -523,6 +527,31 @@ def test_bad_calibration_is_one_line(small, calibration_run, tmp_path, capsys, c
     assert err.startswith("evaluate: error: ") and "\n" not in err and needle in err
     if "--calibration:" not in needle:
         assert str(cal) in err
+
+
+def test_calibration_serves_the_same_weights_under_another_name(small, calibration_run, tmp_path, capsys):
+    """A calibration records the digest of the network and weights it was fitted with: a copy of the
+    checkpoint saved elsewhere with other counters (an exported model) takes it, the same file with
+    one weight changed does not."""
+    config, paths = small
+    cal_result, cal_path = calibration_run
+    assert len(cal_result["checkpoint_sha256"]) == 64
+    model, ckpt = load_checkpoint(paths["adagrasp"])
+    copy = save_checkpoint(tmp_path / "exported.pt", model, ckpt.cfg, step=0, version=0)
+    argv = learned_argv(small, "adagrasp", "adagrasp", f"{GRIPPER},{OTHER}")
+    argv[argv.index("--checkpoint") + 1] = str(copy)
+    rc, result, _ = run_cli([*argv, "--calibration", str(cal_path)], tmp_path, "copy")
+    assert rc == 0 and result["checkpoint"] == str(copy) and result["checkpoint_version"] == 0
+    assert result["checkpoint_sha256"] == cal_result["checkpoint_sha256"]
+    with torch.no_grad():
+        first = next(model.parameters())
+        first[(0,) * first.dim()] += 1e-3
+    changed = save_checkpoint(tmp_path / "changed.pt", model, ckpt.cfg, step=3, version=7)
+    argv[argv.index("--checkpoint") + 1] = str(changed)
+    rc, result, out = run_cli([*argv, "--calibration", str(cal_path)], tmp_path, "changed")
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and result is None and not out.exists()
+    assert "\n" not in err and f"{cal_path}: checkpoint_sha256: fitted with network and weights" in err
 
 
 def test_calibration_fitted_before_a_config_key_existed(small, calibration_run, tmp_path):

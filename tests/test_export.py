@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 import torch
 
-from common.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
+from common.checkpoint import CheckpointError, load_checkpoint, model_sha256, read_checkpoint, save_checkpoint
 from common.config import load_config
 from learner.export import cli, export_model
 from tests.test_network import small_model
@@ -39,6 +40,24 @@ def test_export_keeps_weights_and_log_drops_optimizer(tmp_path):
     assert load_config(out / "config.yaml") == ckpt.cfg
     assert (out / "progress.jsonl").read_text() == (run / "progress.jsonl").read_text()
     assert (out / "checkpoint.pt").stat().st_size < (run / "checkpoints" / "latest.pt").stat().st_size
+
+
+def test_model_digest_follows_network_and_weights_not_the_file(tmp_path):
+    """The exported model and its source share one digest (other counters, no optimiser, another
+    path); one changed weight or one network key gives another."""
+    run, model = make_run(tmp_path)
+    source = read_checkpoint(run / "checkpoints" / "latest.pt")
+    exported = read_checkpoint(export_model(run, "tiny", dest=tmp_path / "models") / "checkpoint.pt")
+    again = read_checkpoint(save_checkpoint(tmp_path / "again.pt", model, source.cfg, step=0, version=0))
+    digest = source.model_sha256()
+    assert len(digest) == 64 and exported.model_sha256() == digest == again.model_sha256()
+    with torch.no_grad():
+        first = next(model.parameters())
+        first[(0,) * first.dim()] += 1e-6
+    changed = read_checkpoint(save_checkpoint(tmp_path / "changed.pt", model, source.cfg, step=7, version=3))
+    assert changed.model_sha256() != digest
+    other_net = dataclasses.replace(source.cfg, model=dataclasses.replace(source.cfg.model, rotate="kernel"))
+    assert other_net != source.cfg and model_sha256(other_net, source.model_state) != digest
 
 
 def test_export_refuses_to_overwrite_and_bad_sources_fail_clearly(tmp_path, capsys):
