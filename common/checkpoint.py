@@ -244,16 +244,25 @@ NETWORK_KEYS = (
 """Config keys that fix what a network's weights mean; they must agree to start from a checkpoint."""
 
 
+def network_values(cfg: Config) -> dict:
+    """The value of each of :data:`NETWORK_KEYS` in ``cfg``, by key, in that order."""
+    tree = to_dict(cfg)
+    out = {}
+    for key in NETWORK_KEYS:
+        value = tree
+        for part in key.split("."):
+            value = value[part]
+        out[key] = value
+    return out
+
+
 def network_difference(mine: Config, theirs: Config) -> tuple[str, object, object] | None:
     """The first of :data:`NETWORK_KEYS` whose value differs between two configs, as (key, value
     in ``mine``, value in ``theirs``); None when the two build the same network."""
-    a_all, b_all = to_dict(mine), to_dict(theirs)
+    a_all, b_all = network_values(mine), network_values(theirs)
     for key in NETWORK_KEYS:
-        a, b = a_all, b_all
-        for part in key.split("."):
-            a, b = a[part], b[part]
-        if a != b:
-            return key, a, b
+        if a_all[key] != b_all[key]:
+            return key, a_all[key], b_all[key]
     return None
 
 
@@ -264,14 +273,7 @@ def model_sha256(cfg: Config, model_state: dict) -> str:
     Files that differ only in counters, optimiser state, paths or other config keys give the same
     digest; any changed weight, dtype or network key gives another.
     """
-    flat = to_dict(cfg)
-    network = {}
-    for key in NETWORK_KEYS:
-        value = flat
-        for part in key.split("."):
-            value = value[part]
-        network[key] = value
-    digest = hashlib.sha256(json.dumps(network, sort_keys=True).encode())
+    digest = hashlib.sha256(json.dumps(network_values(cfg), sort_keys=True).encode())
     for name in sorted(model_state):
         tensor = model_state[name]
         if not isinstance(tensor, torch.Tensor):
