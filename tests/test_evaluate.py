@@ -533,7 +533,7 @@ def test_calibration_serves_the_same_weights_under_another_name(small, calibrati
     """A calibration records the digest of the network and weights it was fitted with: a copy of the
     checkpoint saved elsewhere with other counters (an exported model) takes it, the same file with
     one weight changed does not."""
-    config, paths = small
+    _, paths = small
     cal_result, cal_path = calibration_run
     assert len(cal_result["checkpoint_sha256"]) == 64
     model, ckpt = load_checkpoint(paths["adagrasp"])
