@@ -9,6 +9,7 @@ Usage::
         --policy heuristic --episodes 100 --json results/single-te-te-heuristic.json
     python -m launcher evaluate table results/*.json --md results/table1.md
     python -m launcher evaluate compare results/a.json results/b.json   # paired, same scenes
+    python -m launcher evaluate runs --a r1.json --a r2.json --b s1.json --b s2.json   # across training runs
 
 Protocol (docs/EVALUATION.md has the whole text):
 
@@ -758,7 +759,8 @@ def _parser() -> argparse.ArgumentParser:
         prog="python -m launcher evaluate",
         description="Evaluate one policy on one (scene, objects, grippers) cell with the paper's protocol; "
         "'evaluate table RESULT.json ... --md OUT' merges results into the paper's Table I; "
-        "'evaluate compare A.json B.json' compares two results on the scenes they share.",
+        "'evaluate compare A.json B.json' compares two results on the scenes they share; "
+        "'evaluate runs --a RUN --a RUN --b RUN --b RUN' compares two rows across training runs.",
     )
     ap.add_argument("--checkpoint", default=None, help="model checkpoint (learned policies only)")
     ap.add_argument("--scene", choices=SCENE_KINDS, required=True)
@@ -838,6 +840,11 @@ def cli(argv: list[str]) -> int:
             from actors.compare import compare_cli  # imported here: actors.compare builds on this module
 
             compare_cli(argv[1:])
+            return 0
+        if argv and argv[0] == "runs":
+            from actors.compare_runs import runs_cli  # imported here: actors.compare_runs builds on this module
+
+            runs_cli(argv[1:])
             return 0
         summary = evaluate(argv)
     except (ValueError, SimulationError) as e:

@@ -1,0 +1,416 @@
+"""``python -m launcher evaluate runs --a ... --b ...``: two rows compared across training runs.
+
+``evaluate compare`` tests whether two results differ beyond the chance of their scenes: the
+model of each side is fixed. Whether a *method* beats another needs more: a second training
+run of the same method (another root seed) gives another model, and on piles the rates of
+equal runs differ by more than the steps between rows (docs/RESULTS.md). This module takes
+several training runs per side, each run one or more result files of its model on other scene
+seeds, and tests the difference of the mean over runs against the spread across runs.
+
+- **Run rate.** Each run's table rate (per-gripper policies: the mean over the grippers of
+  successes / attempts; ``adagrasp``: successes / attempts) on the scenes every run of both
+  sides ran; the scenes are the same for every run, so scene difficulty is common to all and
+  the runs differ by their training and by the chance of their grasps.
+- **Difference.** The mean over B's runs minus the mean over A's runs.
+- **t interval and test.** Unpaired: Welch's t (the two sides' run rates as two samples with
+  unequal variances); paired (``--paired``: run i of B and run i of A are one model, e.g. the
+  fix-gripper and adagrasp rows of one training run): Student's t of the per-run differences.
+  Both assume the run rates are normal; with two or three runs per side nothing else checks it.
+- **Randomization test.** Unpaired: every way of relabelling the runs between the sides (exact);
+  paired: every sign of the per-run differences (exact). No assumption of normality, but few
+  runs bound the smallest p-value it can give (``smallest_p``): 0.1 with three runs a side, 0.25
+  with three pairs. A p-value at that bound means "as extreme as these runs allow".
+
+Both tests hold the scenes fixed: they say whether another training run would likely order the
+rows the same *on these scenes*; ``evaluate compare`` speaks to other scenes for one model.
+The files must be results of one cell (scene kind, object set), each side one row and cameras,
+each run of a side a different model (``checkpoint_sha256``, else the checkpoint name), and the
+files of one run one model on different scene seeds (as ``evaluate compare --also``). A scene
+whose objects differ between two records stops the comparison with one line naming the file,
+unless ``--drop-mismatched-scenes`` leaves it out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from actors.compare import Side, _candidates, _check_candidates, _episodes, _grippers, _side, pool, table_rate
+from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_result, row_label
+
+RUNS_FORMAT = "adagrasp-scale-run-comparison/1"
+"""Value of the ``format`` key of a run comparison JSON."""
+EXACT_LIMIT = 1 << 16
+"""Largest number of relabellings (or sign patterns) enumerated; above it, random draws."""
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """One result file of one training run."""
+
+    path: str
+    """Result file."""
+    summary: dict
+    """The result JSON."""
+    episodes: dict
+    """(gripper, scene seed) -> episode record (:func:`actors.compare._episodes`)."""
+
+
+def model_key(path: str, summary: dict) -> str:
+    """The model of a result: its ``checkpoint_sha256`` when recorded, else its checkpoint name.
+    Raises :class:`EvaluationError` for a result without a checkpoint (nothing was trained)."""
+    digest, name = summary.get("checkpoint_sha256"), summary.get("checkpoint")
+    if digest is None and name is None:
+        raise EvaluationError(f"{path}: checkpoint: none ({summary.get('policy')} is not a trained model; "
+                              "runs compares training runs)")
+    return f"sha256:{digest}" if digest is not None else f"name:{name}"
+
+
+def _same_model(path: str, summary: dict, other_path: str, other: dict) -> bool:
+    """Whether two results are of one model: by digest when both record it, else by name."""
+    da, db = summary.get("checkpoint_sha256"), other.get("checkpoint_sha256")
+    if da is not None and db is not None:
+        return da == db
+    return summary.get("checkpoint") == other.get("checkpoint")
+
+
+def _read_side(tag: str, groups: list[list[str]]) -> list[list[RunFile]]:
+    runs = []
+    for files in groups:
+        if not files or any(not f for f in files):
+            raise EvaluationError(f"--{tag} {','.join(files)}: expected RESULT.json[,RESULT.json...] (one run's files)")
+        runs.append([RunFile(f, d := read_result(f), _episodes(f, d)) for f in files])
+    return runs
+
+
+def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> None:
+    first = sides[0][0][0]
+    for tag, runs in zip("ab", sides):
+        head = runs[0][0]
+        for run in runs:
+            for rf in run:
+                for key in ("scene", "objects"):
+                    if key not in rf.summary:
+                        raise EvaluationError(f"{rf.path}: {key}: missing")
+                    if rf.summary[key] != first.summary[key]:
+                        raise EvaluationError(f"{rf.path}: {key}: {rf.summary[key]!r}, but {first.path} has "
+                                              f"{first.summary[key]!r}: not the same scenes")
+                for what, mine, theirs in (("row", row_label(rf.summary), row_label(head.summary)),
+                                           ("cameras", rf.summary.get("cameras"), head.summary.get("cameras"))):
+                    if mine != theirs:
+                        raise EvaluationError(f"{rf.path}: {what}: {mine!r}, but {head.path} (side "
+                                              f"{tag.upper()}) has {theirs!r}: each side is one row")
+
+
+def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:
+    for tag, runs in zip("AB", sides):
+        seen: dict[str, str] = {}
+        for run in runs:
+            key = model_key(run[0].path, run[0].summary)
+            for rf in run[1:]:
+                if not _same_model(rf.path, rf.summary, run[0].path, run[0].summary):
+                    raise EvaluationError(f"{rf.path}: checkpoint: {rf.summary.get('checkpoint')!r}, but "
+                                          f"{run[0].path} of the same run has {run[0].summary.get('checkpoint')!r} "
+                                          "(a run's files are one model on other scene seeds)")
+            if key in seen:
+                raise EvaluationError(f"{run[0].path}: checkpoint: the model of {seen[key]}, also a run of side "
+                                      f"{tag} (each run of a side is another training run)")
+            seen[key] = run[0].path
+    if not paired:
+        return
+    runs_a, runs_b = sides
+    if len(runs_a) != len(runs_b):
+        raise EvaluationError(f"--paired: side A has {len(runs_a)} runs and side B {len(runs_b)}: pairs need as many")
+    for ra, rb in zip(runs_a, runs_b):
+        if not _same_model(rb[0].path, rb[0].summary, ra[0].path, ra[0].summary):
+            raise EvaluationError(f"{rb[0].path}: checkpoint: {rb[0].summary.get('checkpoint')!r}, but its pair "
+                                  f"{ra[0].path} has {ra[0].summary.get('checkpoint')!r}: --paired pairs the rows "
+                                  "of one training run's model")
+
+
+def _side_grippers(sides: list[list[list[RunFile]]], only: list[str] | None) -> list[list[str | None]]:
+    """The gripper rows of each side: every gripper all per-gripper files share (or ``only``),
+    and [None] for an ``adagrasp`` side, whose candidates must be those grippers."""
+    names = [[_grippers(rf.path, rf.episodes, only) for run in runs for rf in run] for runs in sides]
+    fixed = [(rf.path, n) for runs, side in zip(sides, names) for rf, n in zip((f for r in runs for f in r), side)
+             if n != [None]]
+    if not fixed:
+        if only is not None:
+            raise EvaluationError(f"--gripper {','.join(only)}: both sides are adagrasp runs, which choose the gripper")
+        return [[None], [None]]
+    common = sorted(set.intersection(*(set(n) for _, n in fixed)))
+    if not common:
+        raise EvaluationError(f"{fixed[0][0]}: per_gripper: no gripper shared by every per-gripper file")
+    out = []
+    for runs, side in zip(sides, names):
+        if side[0] != [None]:
+            out.append(common)
+            continue
+        for rf in (f for r in runs for f in r):
+            _check_candidates(fixed[0][0], common, rf.path, rf.summary, only)
+        out.append([None])
+    return out
+
+
+def _scenes(sides, grippers, drop_mismatched) -> tuple[list[int], list[int], list[list[int]]]:
+    """The scene seeds every run of both sides ran for all its gripper rows, in the first run's
+    order; the ones left out for other objects; and each run's count of its scenes that some
+    other run did not run."""
+    per_run: list[list[int]] = []
+    for runs, rows in zip(sides, grippers):
+        for run in runs:
+            seen: dict[int, str] = {}
+            for rf in run:
+                for s in dict.fromkeys(seed for _, seed in rf.episodes):
+                    if all((g, s) in rf.episodes for g in rows):
+                        if s in seen:
+                            raise EvaluationError(f"{rf.path}: scene_seed {s}: also in {seen[s]} of the same run "
+                                                  "(a run's files cover other scenes, e.g. another --seed)")
+                        seen[s] = rf.path
+            per_run.append(list(seen))
+    shared = set.intersection(*map(set, per_run))
+    order = [s for s in per_run[0] if s in shared]
+    if not order:
+        raise EvaluationError(f"{sides[0][0][0].path}: scene_seeds: no scene run by every run of both sides")
+    reference: dict[int, tuple[str, list]] = {}
+    dropped = []
+    for runs, rows in zip(sides, grippers):
+        for run in runs:
+            for rf in run:
+                for g in rows:
+                    for s in order:
+                        if (g, s) not in rf.episodes or s in dropped:
+                            continue
+                        objects = rf.episodes[(g, s)]["objects"]
+                        ref_path, ref = reference.setdefault(s, (rf.path, objects))
+                        if objects == ref:
+                            continue
+                        if not drop_mismatched:
+                            raise EvaluationError(
+                                f"{rf.path}: episode_results (scene_seed {s}, gripper {g}).objects: not the objects "
+                                f"of scene {s} in {ref_path} (another simulation, object set or machine; "
+                                "--drop-mismatched-scenes compares the rest)")
+                        dropped.append(s)
+    kept = [s for s in order if s not in dropped]
+    if not kept:
+        raise EvaluationError(f"{sides[0][0][0].path}: episode_results: no shared scene has the same objects in "
+                              "every run")
+    return kept, dropped, [len(set(seeds) - shared) for seeds in per_run]
+
+
+def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[str] | None = None,
+              paired: bool = False, drop_mismatched: bool = False) -> tuple[list[Side], list[Side], dict]:
+    """Read and check the runs of both sides; one :class:`~actors.compare.Side` per run, its files
+    pooled and its columns the shared scenes in one order for every run.
+
+    ``groups_a`` / ``groups_b``: per run, its result files. Returns (A's runs, B's runs, info:
+    ``scene_seeds`` used, ``dropped_scene_seeds``, ``left_out`` per run). Raises
+    :class:`EvaluationError` (one line naming the file and the key) on the checks of the module
+    docstring.
+    """
+    for tag, groups in (("a", groups_a), ("b", groups_b)):
+        if len(groups) < 2:
+            raise EvaluationError(f"--{tag}: {len(groups)} run(s); the spread across runs needs at least 2 per side")
+    sides = [_read_side("a", groups_a), _read_side("b", groups_b)]
+    _check_cell_and_rows(sides)
+    _check_models(sides, paired)
+    grippers = _side_grippers(sides, only)
+    kept, dropped, left_out = _scenes(sides, grippers, drop_mismatched)
+    keep = set(kept)
+    out = []
+    for runs, rows in zip(sides, grippers):
+        built = []
+        for run in runs:
+            parts = []
+            for rf in run:
+                seeds = [s for s in dict.fromkeys(seed for _, seed in rf.episodes) if s in keep
+                         and all((g, s) in rf.episodes for g in rows)]
+                if seeds:
+                    parts.append(_side(rf.path, rf.summary, rf.episodes, rows, seeds, []))
+            side = pool(parts)
+            column = {s: i for i, s in enumerate(side.scene_seeds)}
+            index = [column[s] for s in kept]
+            built.append(Side(side.path, side.summary, side.grippers, side.successes[:, index],
+                              side.attempts[:, index], side.dropped, side.unpaired, side.parts, tuple(kept)))
+        out.append(built)
+    return out[0], out[1], {"scene_seeds": kept, "dropped_scene_seeds": dropped, "left_out": left_out}
+
+
+def run_rates(runs: list[Side]) -> np.ndarray:
+    """(R,) float64 table rate of each run on its (shared) scenes."""
+    return np.array([table_rate(r, np.ones((1, r.successes.shape[1])))[0] for r in runs])
+
+
+def relabel_p(rates_a: np.ndarray, rates_b: np.ndarray, rng: np.random.Generator,
+              draws: int) -> tuple[float, float, str]:
+    """Two-sided p-value of the run-relabelling test of mean(B) - mean(A), the smallest p-value it
+    can give, and how it was computed. Exact (every split of the runs into the two sides' sizes)
+    up to :data:`EXACT_LIMIT` splits; else ``draws`` random splits, p = (1 + hits) / (1 + draws)."""
+    both = np.concatenate([rates_a, rates_b])
+    n, na = len(both), len(rates_a)
+    observed = abs(rates_b.mean() - rates_a.mean())
+    total = math.comb(n, na)
+    smallest = (2 if na == n - na else 1) / total
+    if total <= EXACT_LIMIT:
+        picks = np.zeros((total, n), dtype=bool)
+        for row, chosen in enumerate(itertools.combinations(range(n), na)):
+            picks[row, list(chosen)] = True
+        diffs = (~picks) @ both / (n - na) - picks @ both / na
+        return float((np.abs(diffs) >= observed - 1e-12).mean()), smallest, f"exact, {total} relabellings"
+    hits = 0
+    for _ in range(draws):
+        order = rng.permutation(n)
+        hits += abs(both[order[na:]].mean() - both[order[:na]].mean()) >= observed - 1e-12
+    return (1 + hits) / (1 + draws), 1 / (1 + draws), f"{draws} random relabellings"
+
+
+def sign_p(diffs: np.ndarray, rng: np.random.Generator, draws: int) -> tuple[float, float, str]:
+    """Two-sided p-value of the sign-flip test of the per-pair differences' mean, the smallest
+    p-value it can give, and how it was computed (exact up to :data:`EXACT_LIMIT` sign patterns)."""
+    k = len(diffs)
+    observed = abs(diffs.sum())
+    if 2**k <= EXACT_LIMIT:
+        signs = np.array(list(itertools.product((1.0, -1.0), repeat=k)))
+        return float((np.abs(signs @ diffs) >= observed - 1e-12).mean()), 2 / 2**k, f"exact, {2**k} sign patterns"
+    signs = rng.choice((1.0, -1.0), size=(draws, k))
+    hits = int((np.abs(signs @ diffs) >= observed - 1e-12).sum())
+    return (1 + hits) / (1 + draws), 1 / (1 + draws), f"{draws} random sign patterns"
+
+
+def t_test(rates_a: np.ndarray, rates_b: np.ndarray, paired: bool) -> dict:
+    """Welch's (unpaired) or Student's paired t: p-value, 95% interval of the difference and its
+    degrees of freedom; p and interval None when every run rate (or difference) is the same."""
+    if paired:
+        d = rates_b - rates_a
+        se, df = d.std(ddof=1) / math.sqrt(len(d)), len(d) - 1.0
+    else:
+        va, vb = rates_a.var(ddof=1) / len(rates_a), rates_b.var(ddof=1) / len(rates_b)
+        se = math.sqrt(va + vb)
+        df = (va + vb) ** 2 / (va**2 / (len(rates_a) - 1) + vb**2 / (len(rates_b) - 1)) if se > 0 else math.nan
+    diff = float(rates_b.mean() - rates_a.mean())
+    if se == 0:
+        return {"test": "paired t" if paired else "Welch t", "p_value": None, "ci95": None, "df": None}
+    half = float(stats.t.ppf(0.975, df)) * se
+    p = float(2 * stats.t.sf(abs(diff) / se, df))
+    return {"test": "paired t" if paired else "Welch t", "p_value": p, "ci95": [diff - half, diff + half],
+            "df": float(df)}
+
+
+def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: bool,
+                 draws: int = 10_000, seed: int = 0) -> dict:
+    """The comparison of B's runs against A's (JSON-ready); ``seed`` seeds the random relabellings
+    (used only above :data:`EXACT_LIMIT`)."""
+    ra, rb = run_rates(runs_a), run_rates(runs_b)
+    rng = np.random.default_rng(seed)
+    if paired:
+        p, smallest, how = sign_p(rb - ra, rng, draws)
+        test = f"sign-flip test of the per-run differences ({how})"
+    else:
+        p, smallest, how = relabel_p(ra, rb, rng, draws)
+        test = f"run-relabelling test ({how})"
+
+    def side(runs: list[Side], rates: np.ndarray) -> dict:
+        head = runs[0]
+        return {
+            "row": row_label(head.summary),
+            "grippers": head.grippers,
+            "candidates": _candidates(head.path, head.summary) if head.pooled else None,
+            "runs": [{"path": r.path, "checkpoint": r.summary.get("checkpoint"),
+                      "checkpoint_sha256": r.summary.get("checkpoint_sha256"), "rate": float(x),
+                      "successes": int(r.successes.sum()), "attempts": int(r.attempts.sum())}
+                     for r, x in zip(runs, rates)],
+            "mean": float(rates.mean()),
+            "sd": float(rates.std(ddof=1)),
+            "range": [float(rates.min()), float(rates.max())],
+        }
+
+    return {
+        "format": RUNS_FORMAT,
+        "scene": runs_a[0].summary["scene"],
+        "objects": runs_a[0].summary["objects"],
+        "scenes": len(info["scene_seeds"]),
+        "scene_seeds": info["scene_seeds"],
+        "dropped_scene_seeds": info["dropped_scene_seeds"],
+        "left_out_scenes": info["left_out"],
+        "paired": paired,
+        "a": side(runs_a, ra),
+        "b": side(runs_b, rb),
+        "mean_difference": float(rb.mean() - ra.mean()),
+        "run_differences": [float(x) for x in rb - ra] if paired else None,
+        "t": t_test(ra, rb, paired),
+        "randomization": {"test": test, "p_value": p, "smallest_p": smallest},
+    }
+
+
+def report(c: dict) -> str:
+    """Text lines of a run comparison from :func:`compare_runs`."""
+
+    def side(tag: str, s: dict) -> str:
+        rates = " ".join(f"{r['rate']:.3f}" for r in s["runs"])
+        return (f"  {tag} {s['row']}, {len(s['runs'])} runs: {rates} -> mean {s['mean']:.3f} "
+                f"(sd {s['sd']:.3f}, range {s['range'][0]:.3f} to {s['range'][1]:.3f})")
+
+    t = c["t"]
+    if t["p_value"] is None:
+        t_line = f"{t['test']}: none (every run gives the same)"
+    else:
+        t_line = (f"95% interval {t['ci95'][0]:+.3f} to {t['ci95'][1]:+.3f} ({t['test']}, df {t['df']:.1f}, "
+                  f"p = {t['p_value']:.3g})")
+    r = c["randomization"]
+    left = sum(c["left_out_scenes"])
+    head = (f"runs: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} scenes run by every run"
+            + (f" ({left} of the runs' scenes left out: not run by every run)" if left else "")
+            + (f" ({len(c['dropped_scene_seeds'])} left out: other objects)" if c["dropped_scene_seeds"] else ""))
+    kind = "paired by run" if c["paired"] else "unpaired"
+    return "\n".join([
+        head,
+        side("A", c["a"]),
+        side("B", c["b"]),
+        f"  B - A, mean over runs ({kind}): {c['mean_difference']:+.3f}; {t_line}; {r['test']}: "
+        f"p = {r['p_value']:.3g} (smallest possible {r['smallest_p']:.3g})",
+    ]) + "\n"
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m launcher evaluate runs",
+        description="Compare two rows across training runs on the scenes every run ran: the mean over runs, "
+        "a t interval and test against the spread across runs, and an exact randomization test over runs.",
+    )
+    ap.add_argument("--a", action="append", default=[], required=True, metavar="RUN.json[,RUN.json...]",
+                    help="one training run of the baseline row: its result files (other scene seeds); repeat per run")
+    ap.add_argument("--b", action="append", default=[], required=True, metavar="RUN.json[,RUN.json...]",
+                    help="one training run of the row compared against A; repeat per run")
+    ap.add_argument("--paired", action="store_true",
+                    help="run i of B is the model of run i of A (two rows of one training run)")
+    ap.add_argument("--gripper", default=None, metavar="NAME[,NAME...]",
+                    help="per-gripper results: keep only these grippers")
+    ap.add_argument("--drop-mismatched-scenes", action="store_true",
+                    help="leave out scene seeds whose objects differ between records (else: an error)")
+    ap.add_argument("--draws", type=int, default=10_000,
+                    help=f"random relabellings when there are more than {EXACT_LIMIT} (else exact)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the random relabellings")
+    ap.add_argument("--json", default=None, help="write the comparison here")
+    return ap
+
+
+def runs_cli(argv: list[str]) -> dict:
+    """``evaluate runs``: parse ``argv``, print :func:`report`, write --json; returns the comparison."""
+    args = _parser().parse_args(argv)
+    if args.draws < 1:
+        raise EvaluationError(f"--draws {args.draws}: expected >= 1")
+    check_output_path("--json", args.json)
+    only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
+    split = [[[f.strip() for f in group.split(",")] for group in groups] for groups in (args.a, args.b)]
+    runs_a, runs_b, info = run_sides(split[0], split[1], only, args.paired, args.drop_mismatched_scenes)
+    result = compare_runs(runs_a, runs_b, info, args.paired, args.draws, args.seed)
+    print(report(result), end="")
+    if args.json:
+        _write_atomic(args.json, json.dumps(result, indent=1) + "\n")
+    return result

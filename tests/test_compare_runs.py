@@ -1,0 +1,268 @@
+"""``evaluate runs``: rows compared across training runs; run rates, the t and randomization tests, errors."""
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from actors import compare as cmp
+from actors import compare_runs as cr
+from actors import evaluate as ev
+from tests.test_compare import SEEDS, result, write
+
+GRIPPERS = ("wsg_50", "panda_hand")
+
+
+def random_table(rng, scenes, policy="fix-gripper"):
+    """Random (successes, attempts) per scene; per gripper unless ``policy`` is adagrasp."""
+    def cells():
+        out = []
+        for _ in range(scenes):
+            attempts = int(rng.integers(1, 6))
+            out.append((int(rng.integers(0, attempts + 1)), attempts))
+        return out
+    return cells() if policy == "adagrasp" else {g: cells() for g in GRIPPERS}
+
+
+def run_file(tmp_path, name, policy, table, seeds, model, digest=None):
+    data = {**result(policy, table, seeds), "checkpoint": model}
+    if digest is not None:
+        data["checkpoint_sha256"] = digest
+    return write(tmp_path, name, data)
+
+
+def make_runs(tmp_path, tag, policy, count, rng, seeds=SEEDS, models=None):
+    """``count`` runs of one row, one file each, every run another model (or ``models``)."""
+    models = models or [f"model:{tag}{i}" for i in range(count)]
+    return [[run_file(tmp_path, f"{tag}{i}", policy, random_table(rng, len(seeds), policy), seeds, models[i])]
+            for i in range(count)]
+
+
+def cli_args(runs_a, runs_b, *extra):
+    args = []
+    for tag, runs in (("--a", runs_a), ("--b", runs_b)):
+        for files in runs:
+            args += [tag, ",".join(files)]
+    return [*args, *extra]
+
+
+def test_a_run_of_several_files_has_the_rate_of_one_file_of_all_its_scenes(tmp_path):
+    """A run's files on other scene seeds pool into the rate one result of all its scenes has."""
+    rng = np.random.default_rng(0)
+    whole = [random_table(rng, 5) for _ in range(4)]
+    single = [[run_file(tmp_path, f"w{i}", "fix-gripper", t, SEEDS, f"model:r{i}")] for i, t in enumerate(whole)]
+    split = [[run_file(tmp_path, f"s{i}a", "fix-gripper", {g: c[:2] for g, c in t.items()}, SEEDS[:2], f"model:r{i}"),
+              run_file(tmp_path, f"s{i}b", "fix-gripper", {g: c[2:] for g, c in t.items()}, SEEDS[2:], f"model:r{i}")]
+             for i, t in enumerate(whole)]
+    one = cr.runs_cli(cli_args(single[:2], single[2:]))
+    two = cr.runs_cli(cli_args(split[:2], split[2:]))
+    rates = [r["rate"] for side in ("a", "b") for r in one[side]["runs"]]
+    assert rates == pytest.approx([cmp.rate_interval(f[0], json.load(open(f[0])), resamples=10)[0] for f in single])
+    assert [r["rate"] for side in ("a", "b") for r in two[side]["runs"]] == pytest.approx(rates)
+    for key in ("mean_difference", "t", "randomization", "scenes"):
+        assert two[key] == one[key], key
+
+
+def test_welch_and_paired_t_are_scipys_and_the_interval_ends_at_p_005():
+    rng = np.random.default_rng(1)
+    for na, nb in ((2, 2), (3, 3), (2, 4), (5, 3)):
+        a, b = rng.uniform(0.2, 0.6, na), rng.uniform(0.3, 0.7, nb)
+        t = cr.t_test(a, b, paired=False)
+        assert t["p_value"] == pytest.approx(stats.ttest_ind(b, a, equal_var=False).pvalue, rel=1e-9)
+        lo, hi = t["ci95"]
+        assert stats.ttest_ind(b - hi, a, equal_var=False).pvalue == pytest.approx(0.05, abs=1e-9)
+        assert stats.ttest_ind(b - lo, a, equal_var=False).pvalue == pytest.approx(0.05, abs=1e-9)
+    a, b = rng.uniform(0.2, 0.6, 4), rng.uniform(0.3, 0.7, 4)
+    t = cr.t_test(a, b, paired=True)
+    assert t["p_value"] == pytest.approx(stats.ttest_rel(b, a).pvalue, rel=1e-9) and t["df"] == 3
+    assert stats.ttest_rel(b - t["ci95"][1], a).pvalue == pytest.approx(0.05, abs=1e-9)
+    same = cr.t_test(np.array([0.4, 0.4]), np.array([0.5, 0.5]), paired=False)
+    assert same["p_value"] is None and same["ci95"] is None
+
+
+def test_relabelling_p_equals_going_through_every_order_of_the_runs():
+    rng = np.random.default_rng(2)
+    for na, nb in ((2, 2), (3, 3), (2, 3), (4, 2)):
+        a, b = rng.uniform(0, 1, na), rng.uniform(0, 1, nb)
+        both = np.concatenate([a, b])
+        observed = abs(b.mean() - a.mean())
+        orders = list(itertools.permutations(range(na + nb)))
+        hits = sum(abs(both[list(o[na:])].mean() - both[list(o[:na])].mean()) >= observed - 1e-12 for o in orders)
+        p, smallest, how = cr.relabel_p(a, b, rng, 100)
+        assert p == pytest.approx(hits / len(orders)) and how.startswith("exact")
+    far = cr.relabel_p(np.array([0.1, 0.2, 0.15]), np.array([0.8, 0.9, 0.85]), rng, 100)
+    assert far[0] == pytest.approx(0.1) and far[1] == pytest.approx(0.1)
+
+
+def test_random_relabellings_estimate_the_exact_p(monkeypatch):
+    rng = np.random.default_rng(3)
+    a, b = rng.uniform(0.2, 0.5, 4), rng.uniform(0.3, 0.6, 4)
+    exact = cr.relabel_p(a, b, rng, 1)[0]
+    monkeypatch.setattr(cr, "EXACT_LIMIT", 10)
+    p, smallest, how = cr.relabel_p(a, b, np.random.default_rng(4), 20_000)
+    assert how == "20000 random relabellings" and smallest == pytest.approx(1 / 20_001)
+    assert p == pytest.approx(exact, abs=0.015)
+
+
+def test_sign_flip_p_equals_every_subset_of_flips():
+    rng = np.random.default_rng(5)
+    d = rng.normal(0.05, 0.05, 5)
+    hits = 0
+    for mask in range(2**5):
+        flipped = np.array([-x if mask >> i & 1 else x for i, x in enumerate(d)])
+        hits += abs(flipped.sum()) >= abs(d.sum()) - 1e-12
+    assert cr.sign_p(d, rng, 10)[0] == pytest.approx(hits / 32)
+    assert cr.sign_p(np.array([0.1, 0.2, 0.05]), rng, 10)[:2] == (pytest.approx(0.25), pytest.approx(0.25))
+
+
+def test_paired_runs_take_the_differences_of_one_models_rows(tmp_path, capsys):
+    """Fix-gripper and adagrasp of one training run pair; the sign-flip test and paired t read the
+    per-run differences."""
+    rng = np.random.default_rng(6)
+    fix = make_runs(tmp_path, "fg", "fix-gripper", 3, rng, models=["model:m0", "model:m1", "model:m2"])
+    ada = make_runs(tmp_path, "ad", "adagrasp", 3, rng, models=["model:m0", "model:m1", "model:m2"])
+    c = cr.runs_cli(cli_args(fix, ada, "--paired"))
+    ra = np.array([r["rate"] for r in c["a"]["runs"]])
+    rb = np.array([r["rate"] for r in c["b"]["runs"]])
+    assert c["run_differences"] == pytest.approx(list(rb - ra))
+    assert c["t"]["p_value"] == pytest.approx(stats.ttest_rel(rb, ra).pvalue)
+    assert c["randomization"]["smallest_p"] == pytest.approx(0.25) and c["b"]["candidates"] == list(GRIPPERS)
+    out = capsys.readouterr().out
+    assert "paired by run" in out and "sign-flip test of the per-run differences (exact, 8 sign patterns)" in out
+
+
+def test_scenes_are_those_every_run_ran_in_one_order(tmp_path, capsys):
+    """Runs pair on scene seeds whatever their order in the files; a scene some run lacks is left
+    out of every run and counted."""
+    rng = np.random.default_rng(7)
+    runs_a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    t = random_table(rng, 6)
+    shuffled = [SEEDS[i] for i in (4, 2, 0, 3, 1)] + [99]
+    extra = [[run_file(tmp_path, "bx", "fix-gripper", t, shuffled, "model:bx")]]
+    plain = make_runs(tmp_path, "b", "fix-gripper", 1, rng)
+    c = cr.runs_cli(cli_args(runs_a, extra + plain))
+    assert c["scene_seeds"] == SEEDS and c["left_out_scenes"] == [0, 0, 1, 0]
+    in_order = {g: [cells[shuffled.index(s)] for s in SEEDS] for g, cells in t.items()}
+    expected = np.mean([sum(s for s, _ in cells) / sum(a for _, a in cells) for cells in in_order.values()])
+    assert c["b"]["runs"][0]["rate"] == pytest.approx(expected)
+    assert "(1 of the runs' scenes left out: not run by every run)" in capsys.readouterr().out
+
+
+def test_other_objects_in_a_scene_stop_it_or_are_left_out(tmp_path, capsys):
+    rng = np.random.default_rng(8)
+    runs_a, runs_b = make_runs(tmp_path, "a", "fix-gripper", 2, rng), make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    data = json.load(open(runs_b[1][0]))
+    data["episode_results"][3]["objects"] = [["ycb/999", "target"]]
+    json.dump(data, open(runs_b[1][0], "w"))
+    assert ev.cli(["runs", *cli_args(runs_a, runs_b)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "b1.json: episode_results (scene_seed 14, gripper wsg_50).objects" in err
+    c = cr.runs_cli(cli_args(runs_a, runs_b, "--drop-mismatched-scenes"))
+    assert c["dropped_scene_seeds"] == [14] and c["scenes"] == 4 and 14 not in c["scene_seeds"]
+
+
+def _same_model_twice(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng, models=["model:x", "model:x"])
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _one_run(tmp_path, rng):
+    return make_runs(tmp_path, "a", "fix-gripper", 1, rng), make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _other_row(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 1, rng) + make_runs(tmp_path, "c", "fix-config", 1, rng)
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _other_scene_kind(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    data = json.load(open(a[1][0]))
+    json.dump({**data, "scene": "multi"}, open(a[1][0], "w"))
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _heuristic(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "heuristic", 2, rng, models=[None, None])
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _run_of_two_models(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    a[0].append(run_file(tmp_path, "a0x", "fix-gripper", random_table(rng, 2), [31, 32], "model:other"))
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _a_scene_twice_in_a_run(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    a[0].append(a[0][0])
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _digest_over_name(tmp_path, rng):
+    """Two names, one digest: the same model twice on a side."""
+    a = [[run_file(tmp_path, f"a{i}", "fix-gripper", random_table(rng, 5), SEEDS, f"model:n{i}", "ab" * 32)]
+         for i in range(2)]
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+@pytest.mark.parametrize("build, extra, needle", [
+    (_same_model_twice, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
+    (_digest_over_name, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
+    (_one_run, [], r"--a: 1 run\(s\); the spread across runs needs at least 2 per side"),
+    (_other_row, [], r"c0\.json: row: 'fix-config', but .*a0\.json \(side A\) has 'fix-gripper'"),
+    (_other_scene_kind, [], r"a1\.json: scene: 'multi', but .*a0\.json has 'obstacle': not the same scenes"),
+    (_heuristic, [], r"a0\.json: checkpoint: none \(heuristic is not a trained model"),
+    (_run_of_two_models, [], r"a0x\.json: checkpoint: 'model:other', but .*a0\.json of the same run has 'model:a0'"),
+    (_a_scene_twice_in_a_run, [], r"a0\.json: scene_seed 11: also in .*a0\.json of the same run"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, build, extra, needle):
+    runs_a, runs_b = build(tmp_path, np.random.default_rng(9))
+    with pytest.raises(ev.EvaluationError, match=needle):
+        cr.runs_cli(cli_args(runs_a, runs_b, *extra))
+    assert ev.cli(["runs", *cli_args(runs_a, runs_b, *extra)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("evaluate: error: ") and "\n" not in err
+
+
+def test_paired_needs_one_model_per_pair_and_as_many_runs(tmp_path):
+    rng = np.random.default_rng(10)
+    a, b = make_runs(tmp_path, "a", "fix-gripper", 2, rng), make_runs(tmp_path, "b", "adagrasp", 2, rng)
+    with pytest.raises(ev.EvaluationError, match=r"b0\.json: checkpoint: 'model:b0', but its pair .*a0\.json has "
+                                                 r"'model:a0': --paired pairs the rows of one training run's model"):
+        cr.runs_cli(cli_args(a, b, "--paired"))
+    three = make_runs(tmp_path, "c", "adagrasp", 3, rng, models=["model:a0", "model:a1", "model:c2"])
+    with pytest.raises(ev.EvaluationError, match=r"--paired: side A has 2 runs and side B 3"):
+        cr.runs_cli(cli_args(a, three, "--paired"))
+
+
+def test_adagrasp_must_choose_among_the_per_gripper_rows_grippers(tmp_path):
+    rng = np.random.default_rng(11)
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    b = [[write(tmp_path, f"b{i}", {**result("adagrasp", random_table(rng, 5, "adagrasp"), SEEDS,
+                                             grippers=("wsg_50", "panda_hand", "robotiq")), "checkpoint": f"model:b{i}"})]
+         for i in range(2)]
+    with pytest.raises(ev.EvaluationError, match=r"a0\.json: grippers \['panda_hand', 'wsg_50'\]: adagrasp in "
+                                                 r".*b0\.json chose among"):
+        cr.runs_cli(cli_args(a, b))
+    with pytest.raises(ev.EvaluationError, match=r"--gripper wsg_50: both sides are adagrasp runs"):
+        cr.runs_cli(cli_args(b, make_runs(tmp_path, "c", "adagrasp", 2, rng), "--gripper", "wsg_50"))
+
+
+def test_cli_prints_and_writes_the_comparison(tmp_path, capsys):
+    rng = np.random.default_rng(12)
+    a, b = make_runs(tmp_path, "a", "init-only", 3, rng), make_runs(tmp_path, "b", "fix-config", 3, rng)
+    out = tmp_path / "runs.json"
+    assert ev.cli(["runs", *cli_args(a, b, "--json", str(out))]) == 0
+    text = capsys.readouterr().out
+    written = json.loads(out.read_text())
+    assert written["format"] == cr.RUNS_FORMAT and len(written["a"]["runs"]) == 3
+    assert f"mean {written['b']['mean']:.3f}" in text and "run-relabelling test (exact, 20 relabellings)" in text
+    assert written["a"]["sd"] == pytest.approx(np.std([r["rate"] for r in written["a"]["runs"]], ddof=1))
+    assert ev.cli(["runs", *cli_args(a, b, "--json", str(tmp_path))]) == 2
+    captured = capsys.readouterr()
+    assert f"--json {tmp_path}: is a directory" in captured.err and captured.out == ""
+    assert ev.cli(["runs", *cli_args(a, b, "--draws", "0")]) == 2
+    assert "--draws 0: expected >= 1" in capsys.readouterr().err
