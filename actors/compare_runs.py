@@ -21,13 +21,14 @@ seeds, and tests the difference of the mean over runs against the spread across 
   runs bound the smallest p-value it can give (``smallest_p``): 0.1 with three runs a side, 0.25
   with three pairs. A p-value at that bound means "as extreme as these runs allow".
 
-Both tests hold the scenes fixed: they say whether another training run would likely order the
-rows the same *on these scenes*; ``evaluate compare`` speaks to other scenes for one model.
-The files must be results of one cell (scene kind, object set), each side one row and cameras,
-each run of a side a different model (``checkpoint_sha256``, else the checkpoint name), and the
-files of one run one model on different scene seeds (as ``evaluate compare --also``). A scene
-whose objects differ between two records stops the comparison with one line naming the file,
-unless ``--drop-mismatched-scenes`` leaves it out.
+Both tests hold the scenes fixed: they say whether the difference exceeds the spread across
+training runs *on these scenes*; ``evaluate compare`` speaks to other scenes for one model. The
+files must be results of one cell (:data:`CELL_KEYS` and the gripper names), each side one row,
+each run of a side another model (``checkpoint_sha256``, else the checkpoint name), no model on
+both sides unless paired, and the files of one run one model on different scene seeds (as
+``evaluate compare --also``). A per-gripper file must have records of every gripper of the cell
+(or of ``--gripper``). A scene whose objects differ between two compared records stops the
+comparison with one line naming the file, unless ``--drop-mismatched-scenes`` leaves it out.
 """
 
 from __future__ import annotations
@@ -62,22 +63,32 @@ class RunFile:
     """(gripper, scene seed) -> episode record (:func:`actors.compare._episodes`)."""
 
 
-def model_key(path: str, summary: dict) -> str:
-    """The model of a result: its ``checkpoint_sha256`` when recorded, else its checkpoint name.
-    Raises :class:`EvaluationError` for a result without a checkpoint (nothing was trained)."""
-    digest, name = summary.get("checkpoint_sha256"), summary.get("checkpoint")
-    if digest is None and name is None:
-        raise EvaluationError(f"{path}: checkpoint: none ({summary.get('policy')} is not a trained model; "
+CELL_KEYS = ("scene", "objects", "cameras", "scale", "max_attempts", "openings")
+"""Result keys every file of both sides shares: one cell, measured one way."""
+
+
+def _check_trained(rf: RunFile) -> None:
+    """One line for a result without a checkpoint (``random``, ``heuristic``: nothing was trained)."""
+    if rf.summary.get("checkpoint_sha256") is None and rf.summary.get("checkpoint") is None:
+        raise EvaluationError(f"{rf.path}: checkpoint: none ({rf.summary.get('policy')} is not a trained model; "
                               "runs compares training runs)")
-    return f"sha256:{digest}" if digest is not None else f"name:{name}"
 
 
-def _same_model(path: str, summary: dict, other_path: str, other: dict) -> bool:
-    """Whether two results are of one model: by digest when both record it, else by name."""
-    da, db = summary.get("checkpoint_sha256"), other.get("checkpoint_sha256")
-    if da is not None and db is not None:
-        return da == db
-    return summary.get("checkpoint") == other.get("checkpoint")
+def _model_differs(rf: RunFile, other: RunFile) -> str | None:
+    """None when two results are of one model; else the key that tells them apart:
+    ``checkpoint_sha256`` when both record it, else ``checkpoint`` (the name)."""
+    mine, theirs = rf.summary.get("checkpoint_sha256"), other.summary.get("checkpoint_sha256")
+    if mine is not None and theirs is not None:
+        return None if mine == theirs else "checkpoint_sha256"
+    return None if rf.summary.get("checkpoint") == other.summary.get("checkpoint") else "checkpoint"
+
+
+def _models_line(key: str, rf: RunFile, other: RunFile) -> str:
+    """``FILE: KEY: VALUE, but OTHER has VALUE`` for two results of different models."""
+    mine, theirs = rf.summary.get(key), other.summary.get(key)
+    if key == "checkpoint_sha256":
+        return f"{rf.path}: {key}: {mine[:12]}..., but {other.path} has {theirs[:12]}..."
+    return f"{rf.path}: {key}: {mine!r}, but {other.path} has {theirs!r}"
 
 
 def _read_side(tag: str, groups: list[list[str]]) -> list[list[RunFile]]:
@@ -90,82 +101,99 @@ def _read_side(tag: str, groups: list[list[str]]) -> list[list[RunFile]]:
 
 
 def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> None:
+    """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names) and its side's row."""
     first = sides[0][0][0]
-    for tag, runs in zip("ab", sides):
+    grippers = sorted(_candidates(first.path, first.summary))
+    for tag, runs in zip("AB", sides):
         head = runs[0][0]
-        for run in runs:
-            for rf in run:
-                for key in ("scene", "objects"):
-                    if key not in rf.summary:
-                        raise EvaluationError(f"{rf.path}: {key}: missing")
-                    if rf.summary[key] != first.summary[key]:
-                        raise EvaluationError(f"{rf.path}: {key}: {rf.summary[key]!r}, but {first.path} has "
-                                              f"{first.summary[key]!r}: not the same scenes")
-                for what, mine, theirs in (("row", row_label(rf.summary), row_label(head.summary)),
-                                           ("cameras", rf.summary.get("cameras"), head.summary.get("cameras"))):
-                    if mine != theirs:
-                        raise EvaluationError(f"{rf.path}: {what}: {mine!r}, but {head.path} (side "
-                                              f"{tag.upper()}) has {theirs!r}: each side is one row")
+        for rf in (f for run in runs for f in run):
+            for key in ("scene", "objects"):
+                if key not in rf.summary:
+                    raise EvaluationError(f"{rf.path}: {key}: missing")
+            for key in CELL_KEYS:
+                if rf.summary.get(key) != first.summary.get(key):
+                    raise EvaluationError(f"{rf.path}: {key}: {rf.summary.get(key)!r}, but {first.path} has "
+                                          f"{first.summary.get(key)!r}: not one cell")
+            mine = sorted(_candidates(rf.path, rf.summary))
+            if mine != grippers:
+                raise EvaluationError(f"{rf.path}: gripper_names: {mine}, but {first.path} has {grippers}: "
+                                      "not one cell")
+            if row_label(rf.summary) != row_label(head.summary):
+                raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
+                                      f"has {row_label(head.summary)!r}: each side is one row")
 
 
 def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:
+    """One model per run, another one per run of a side; ``paired``: run i of both sides one model,
+    else no model on both sides (Welch's samples must be independent)."""
     for tag, runs in zip("AB", sides):
-        seen: dict[str, str] = {}
-        for run in runs:
-            key = model_key(run[0].path, run[0].summary)
-            for rf in run[1:]:
-                if not _same_model(rf.path, rf.summary, run[0].path, run[0].summary):
-                    raise EvaluationError(f"{rf.path}: checkpoint: {rf.summary.get('checkpoint')!r}, but "
-                                          f"{run[0].path} of the same run has {run[0].summary.get('checkpoint')!r} "
-                                          "(a run's files are one model on other scene seeds)")
-            if key in seen:
-                raise EvaluationError(f"{run[0].path}: checkpoint: the model of {seen[key]}, also a run of side "
-                                      f"{tag} (each run of a side is another training run)")
-            seen[key] = run[0].path
-    if not paired:
-        return
+        for i, run in enumerate(runs):
+            for rf in run:
+                _check_trained(rf)
+                key = _model_differs(rf, run[0])
+                if key:
+                    raise EvaluationError(f"{_models_line(key, rf, run[0])}, of the same run (a run's files are "
+                                          "one model on other scene seeds)")
+            for other in runs[:i]:
+                if _model_differs(run[0], other[0]) is None:
+                    raise EvaluationError(f"{run[0].path}: checkpoint: the model of {other[0].path}, also a run of "
+                                          f"side {tag} (each run of a side is another training run)")
     runs_a, runs_b = sides
+    if not paired:
+        for rb in runs_b:
+            for ra in runs_a:
+                if _model_differs(rb[0], ra[0]) is None:
+                    raise EvaluationError(f"{rb[0].path}: checkpoint: the model of {ra[0].path} on side A: two "
+                                          "rows of one model compare with --paired")
+        return
     if len(runs_a) != len(runs_b):
         raise EvaluationError(f"--paired: side A has {len(runs_a)} runs and side B {len(runs_b)}: pairs need as many")
     for ra, rb in zip(runs_a, runs_b):
-        if not _same_model(rb[0].path, rb[0].summary, ra[0].path, ra[0].summary):
-            raise EvaluationError(f"{rb[0].path}: checkpoint: {rb[0].summary.get('checkpoint')!r}, but its pair "
-                                  f"{ra[0].path} has {ra[0].summary.get('checkpoint')!r}: --paired pairs the rows "
-                                  "of one training run's model")
+        key = _model_differs(rb[0], ra[0])
+        if key:
+            raise EvaluationError(f"{_models_line(key, rb[0], ra[0])}: --paired pairs the rows of one training "
+                                  "run's model")
 
 
 def _side_grippers(sides: list[list[list[RunFile]]], only: list[str] | None) -> list[list[str | None]]:
-    """The gripper rows of each side: every gripper all per-gripper files share (or ``only``),
-    and [None] for an ``adagrasp`` side, whose candidates must be those grippers."""
-    names = [[_grippers(rf.path, rf.episodes, only) for run in runs for rf in run] for runs in sides]
-    fixed = [(rf.path, n) for runs, side in zip(sides, names) for rf, n in zip((f for r in runs for f in r), side)
-             if n != [None]]
-    if not fixed:
+    """The gripper rows of each side: the cell's grippers (or ``only``) for a per-gripper row,
+    each with a record in every file; [None] for an ``adagrasp`` row."""
+    out: list[list[str | None]] = []
+    fixed: RunFile | None = None
+    for runs in sides:
+        rows: list[str | None] = []
+        for rf in (f for run in runs for f in run):
+            rows = _grippers(rf.path, rf.episodes, only)
+            if rows == [None]:
+                continue
+            fixed = rf
+            missing = sorted(set(only or _candidates(rf.path, rf.summary)) - set(rows))
+            if missing:
+                raise EvaluationError(f"{rf.path}: episode_results: no record of gripper {', '.join(missing)} (an "
+                                      "unfinished evaluation?); --gripper compares the others")
+        out.append(rows)
+    if fixed is None:
         if only is not None:
             raise EvaluationError(f"--gripper {','.join(only)}: both sides are adagrasp runs, which choose the gripper")
-        return [[None], [None]]
-    common = sorted(set.intersection(*(set(n) for _, n in fixed)))
-    if not common:
-        raise EvaluationError(f"{fixed[0][0]}: per_gripper: no gripper shared by every per-gripper file")
-    out = []
-    for runs, side in zip(sides, names):
-        if side[0] != [None]:
-            out.append(common)
-            continue
-        for rf in (f for r in runs for f in r):
-            _check_candidates(fixed[0][0], common, rf.path, rf.summary, only)
-        out.append([None])
+        return out
+    rows = next(r for r in out if r != [None])
+    for runs, side in zip(sides, out):
+        if side == [None]:
+            for rf in (f for run in runs for f in run):
+                _check_candidates(fixed.path, rows, rf.path, rf.summary, only)
     return out
 
 
-def _scenes(sides, grippers, drop_mismatched) -> tuple[list[int], list[int], list[list[int]]]:
+def _scenes(sides, grippers, drop_mismatched) -> tuple[list[int], list[int], list[int]]:
     """The scene seeds every run of both sides ran for all its gripper rows, in the first run's
-    order; the ones left out for other objects; and each run's count of its scenes that some
-    other run did not run."""
+    order; the ones left out for other objects; and per run the count of the scene seeds in its
+    records left out otherwise (not run by every run, or not for every gripper row)."""
     per_run: list[list[int]] = []
+    any_record: list[set[int]] = []
     for runs, rows in zip(sides, grippers):
         for run in runs:
             seen: dict[int, str] = {}
+            any_record.append({seed for rf in run for _, seed in rf.episodes})
             for rf in run:
                 for s in dict.fromkeys(seed for _, seed in rf.episodes):
                     if all((g, s) in rf.episodes for g in rows):
@@ -201,7 +229,7 @@ def _scenes(sides, grippers, drop_mismatched) -> tuple[list[int], list[int], lis
     if not kept:
         raise EvaluationError(f"{sides[0][0][0].path}: episode_results: no shared scene has the same objects in "
                               "every run")
-    return kept, dropped, [len(set(seeds) - shared) for seeds in per_run]
+    return kept, dropped, [len(seeds - set(kept) - set(dropped)) for seeds in any_record]
 
 
 def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[str] | None = None,
@@ -285,16 +313,17 @@ def sign_p(diffs: np.ndarray, rng: np.random.Generator, draws: int) -> tuple[flo
 
 def t_test(rates_a: np.ndarray, rates_b: np.ndarray, paired: bool) -> dict:
     """Welch's (unpaired) or Student's paired t: p-value, 95% interval of the difference and its
-    degrees of freedom; p and interval None when every run rate (or difference) is the same."""
+    degrees of freedom; all None when the runs have no spread (every run rate of both sides, or
+    every per-run difference, the same up to rounding): t is undefined."""
     if paired:
         d = rates_b - rates_a
         se, df = d.std(ddof=1) / math.sqrt(len(d)), len(d) - 1.0
     else:
         va, vb = rates_a.var(ddof=1) / len(rates_a), rates_b.var(ddof=1) / len(rates_b)
         se = math.sqrt(va + vb)
-        df = (va + vb) ** 2 / (va**2 / (len(rates_a) - 1) + vb**2 / (len(rates_b) - 1)) if se > 0 else math.nan
+        df = (va + vb) ** 2 / (va**2 / (len(rates_a) - 1) + vb**2 / (len(rates_b) - 1)) if se >= 1e-12 else math.nan
     diff = float(rates_b.mean() - rates_a.mean())
-    if se == 0:
+    if se < 1e-12:
         return {"test": "paired t" if paired else "Welch t", "p_value": None, "ci95": None, "df": None}
     half = float(stats.t.ppf(0.975, df)) * se
     p = float(2 * stats.t.sf(abs(diff) / se, df))
@@ -358,14 +387,15 @@ def report(c: dict) -> str:
 
     t = c["t"]
     if t["p_value"] is None:
-        t_line = f"{t['test']}: none (every run gives the same)"
+        t_line = f"{t['test']}: none (no spread across runs: t is undefined)"
     else:
         t_line = (f"95% interval {t['ci95'][0]:+.3f} to {t['ci95'][1]:+.3f} ({t['test']}, df {t['df']:.1f}, "
                   f"p = {t['p_value']:.3g})")
     r = c["randomization"]
     left = sum(c["left_out_scenes"])
     head = (f"runs: {c['scene']} scenes of objects {c['objects']}, {c['scenes']} scenes run by every run"
-            + (f" ({left} of the runs' scenes left out: not run by every run)" if left else "")
+            + (f" ({left} of the runs' scenes left out: not run by every run, or not with every gripper)"
+               if left else "")
             + (f" ({len(c['dropped_scene_seeds'])} left out: other objects)" if c["dropped_scene_seeds"] else ""))
     kind = "paired by run" if c["paired"] else "unpaired"
     return "\n".join([

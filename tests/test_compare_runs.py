@@ -147,7 +147,30 @@ def test_scenes_are_those_every_run_ran_in_one_order(tmp_path, capsys):
     in_order = {g: [cells[shuffled.index(s)] for s in SEEDS] for g, cells in t.items()}
     expected = np.mean([sum(s for s, _ in cells) / sum(a for _, a in cells) for cells in in_order.values()])
     assert c["b"]["runs"][0]["rate"] == pytest.approx(expected)
-    assert "(1 of the runs' scenes left out: not run by every run)" in capsys.readouterr().out
+    assert "(1 of the runs' scenes left out: not run by every run, or not with every gripper)" in capsys.readouterr().out
+
+
+def test_a_scene_without_every_gripper_is_left_out_and_counted(tmp_path):
+    rng = np.random.default_rng(13)
+    runs_a, runs_b = make_runs(tmp_path, "a", "fix-gripper", 2, rng), make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    data = json.load(open(runs_a[1][0]))
+    data["episode_results"] = [r for r in data["episode_results"] if (r["gripper"], r["scene_seed"]) != ("wsg_50", 13)]
+    json.dump(data, open(runs_a[1][0], "w"))
+    c = cr.runs_cli(cli_args(runs_a, runs_b))
+    assert c["scenes"] == 4 and 13 not in c["scene_seeds"] and c["left_out_scenes"] == [1, 1, 1, 1]
+
+
+def test_a_gripper_without_records_stops_unless_left_out_with_gripper(tmp_path, capsys):
+    rng = np.random.default_rng(14)
+    runs_a, runs_b = make_runs(tmp_path, "a", "fix-gripper", 2, rng), make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    data = json.load(open(runs_b[0][0]))
+    data["episode_results"] = [r for r in data["episode_results"] if r["gripper"] != "panda_hand"]
+    json.dump(data, open(runs_b[0][0], "w"))
+    assert ev.cli(["runs", *cli_args(runs_a, runs_b)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "b0.json: episode_results: no record of gripper panda_hand (an unfinished" in err
+    c = cr.runs_cli(cli_args(runs_a, runs_b, "--gripper", "wsg_50"))
+    assert c["a"]["grippers"] == ["wsg_50"] and c["scenes"] == 5
 
 
 def test_other_objects_in_a_scene_stop_it_or_are_left_out(tmp_path, capsys):
@@ -208,15 +231,44 @@ def _digest_over_name(tmp_path, rng):
     return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
 
 
+def _other_cameras(tmp_path, rng):
+    b = make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    data = json.load(open(b[1][0]))
+    json.dump({**data, "cameras": 2}, open(b[1][0], "w"))
+    return make_runs(tmp_path, "a", "fix-gripper", 2, rng), b
+
+
+def _one_model_on_both_sides(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    return a, make_runs(tmp_path, "b", "adagrasp", 2, rng, models=["model:a0", "model:b1"])
+
+
+def _digest_on_one_file_only(tmp_path, rng):
+    """One model, its digest recorded in one file only: the names decide, and they agree."""
+    a = [[run_file(tmp_path, "a0", "fix-gripper", random_table(rng, 5), SEEDS, "model:x", "ab" * 32)],
+         [run_file(tmp_path, "a1", "fix-gripper", random_table(rng, 5), SEEDS, "model:x")]]
+    return a, make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+
+
+def _three_against_two(tmp_path, rng):
+    a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
+    return a, make_runs(tmp_path, "b", "adagrasp", 3, rng, models=["model:a0", "model:a1", "model:b2"])
+
+
 @pytest.mark.parametrize("build, extra, needle", [
     (_same_model_twice, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
     (_digest_over_name, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
     (_one_run, [], r"--a: 1 run\(s\); the spread across runs needs at least 2 per side"),
     (_other_row, [], r"c0\.json: row: 'fix-config', but .*a0\.json \(side A\) has 'fix-gripper'"),
-    (_other_scene_kind, [], r"a1\.json: scene: 'multi', but .*a0\.json has 'obstacle': not the same scenes"),
+    (_other_scene_kind, [], r"a1\.json: scene: 'multi', but .*a0\.json has 'obstacle': not one cell"),
     (_heuristic, [], r"a0\.json: checkpoint: none \(heuristic is not a trained model"),
-    (_run_of_two_models, [], r"a0x\.json: checkpoint: 'model:other', but .*a0\.json of the same run has 'model:a0'"),
+    (_run_of_two_models, [], r"a0x\.json: checkpoint: 'model:other', but .*a0\.json has 'model:a0', of the same run"),
     (_a_scene_twice_in_a_run, [], r"a0\.json: scene_seed 11: also in .*a0\.json of the same run"),
+    (_other_cameras, [], r"b1\.json: cameras: 2, but .*a0\.json has 1: not one cell"),
+    (_one_model_on_both_sides, [], r"b0\.json: checkpoint: the model of .*a0\.json on side A: two rows of one "
+                                   r"model compare with --paired"),
+    (_digest_on_one_file_only, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
+    (_three_against_two, ["--paired"], r"--paired: side A has 2 runs and side B 3: pairs need as many"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, build, extra, needle):
     runs_a, runs_b = build(tmp_path, np.random.default_rng(9))
@@ -227,28 +279,49 @@ def test_bad_input_is_one_line(tmp_path, capsys, build, extra, needle):
     assert err.startswith("evaluate: error: ") and "\n" not in err
 
 
-def test_paired_needs_one_model_per_pair_and_as_many_runs(tmp_path):
+def test_paired_needs_one_model_per_pair_and_names_the_key_that_differs(tmp_path):
     rng = np.random.default_rng(10)
     a, b = make_runs(tmp_path, "a", "fix-gripper", 2, rng), make_runs(tmp_path, "b", "adagrasp", 2, rng)
-    with pytest.raises(ev.EvaluationError, match=r"b0\.json: checkpoint: 'model:b0', but its pair .*a0\.json has "
+    with pytest.raises(ev.EvaluationError, match=r"b0\.json: checkpoint: 'model:b0', but .*a0\.json has "
                                                  r"'model:a0': --paired pairs the rows of one training run's model"):
         cr.runs_cli(cli_args(a, b, "--paired"))
-    three = make_runs(tmp_path, "c", "adagrasp", 3, rng, models=["model:a0", "model:a1", "model:c2"])
-    with pytest.raises(ev.EvaluationError, match=r"--paired: side A has 2 runs and side B 3"):
-        cr.runs_cli(cli_args(a, three, "--paired"))
+    digests = [[run_file(tmp_path, f"dA{i}", "fix-gripper", random_table(rng, 5), SEEDS, "model:same", f"A{i}" * 32)]
+               for i in range(2)]
+    same_name = [[run_file(tmp_path, f"e{i}", "adagrasp", random_table(rng, 5, "adagrasp"), SEEDS, "model:same",
+                           f"x{i}" * 32)] for i in range(2)]
+    with pytest.raises(ev.EvaluationError, match=r"e0\.json: checkpoint_sha256: x0x0x0x0x0x0\.\.\., but .*dA0\.json "
+                                                 r"has A0A0A0A0A0A0\.\.\.: --paired"):
+        cr.runs_cli(cli_args(digests, same_name, "--paired"))
 
 
-def test_adagrasp_must_choose_among_the_per_gripper_rows_grippers(tmp_path):
+def test_every_file_is_one_cell_of_grippers(tmp_path):
+    """adagrasp choosing among other grippers (another gripper set) is another cell."""
     rng = np.random.default_rng(11)
     a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
     b = [[write(tmp_path, f"b{i}", {**result("adagrasp", random_table(rng, 5, "adagrasp"), SEEDS,
                                              grippers=("wsg_50", "panda_hand", "robotiq")), "checkpoint": f"model:b{i}"})]
          for i in range(2)]
-    with pytest.raises(ev.EvaluationError, match=r"a0\.json: grippers \['panda_hand', 'wsg_50'\]: adagrasp in "
-                                                 r".*b0\.json chose among"):
+    with pytest.raises(ev.EvaluationError, match=r"b0\.json: gripper_names: \['panda_hand', 'robotiq', 'wsg_50'\], "
+                                                 r"but .*a0\.json has \['panda_hand', 'wsg_50'\]: not one cell"):
         cr.runs_cli(cli_args(a, b))
     with pytest.raises(ev.EvaluationError, match=r"--gripper wsg_50: both sides are adagrasp runs"):
-        cr.runs_cli(cli_args(b, make_runs(tmp_path, "c", "adagrasp", 2, rng), "--gripper", "wsg_50"))
+        ada = make_runs(tmp_path, "c", "adagrasp", 2, rng)
+        cr.runs_cli(cli_args(ada, make_runs(tmp_path, "d", "adagrasp", 2, rng), "--gripper", "wsg_50"))
+
+
+def test_t_is_undefined_without_spread_up_to_rounding():
+    d = cr.t_test(np.array([0.7, 0.2]), np.array([0.8, 0.3]), paired=True)
+    assert d["p_value"] is None and d["ci95"] is None
+    assert cr.t_test(np.array([0.7, 0.2]), np.array([0.8, 0.35]), paired=True)["p_value"] > 0.1
+
+
+def test_random_sign_patterns_estimate_the_exact_p(monkeypatch):
+    d = np.random.default_rng(15).normal(0.03, 0.05, 6)
+    exact = cr.sign_p(d, np.random.default_rng(0), 1)[0]
+    monkeypatch.setattr(cr, "EXACT_LIMIT", 10)
+    p, smallest, how = cr.sign_p(d, np.random.default_rng(16), 20_000)
+    assert how == "20000 random sign patterns" and smallest == pytest.approx(1 / 20_001)
+    assert p == pytest.approx(exact, abs=0.015)
 
 
 def test_cli_prints_and_writes_the_comparison(tmp_path, capsys):
