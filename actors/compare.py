@@ -166,17 +166,26 @@ def _poolable(key: str, value):
     return value
 
 
-def _check_same_model(s: Side, first: Side) -> None:
-    """Pooled results must be of one model: the same ``checkpoint_sha256`` (network and weights)
-    when both record it, whatever they call the checkpoint; else the same ``checkpoint`` name
-    (results written before the digest was recorded). One-line error naming the file and key."""
-    mine, theirs = s.summary.get("checkpoint_sha256"), first.summary.get("checkpoint_sha256")
+def model_difference(summary: dict, other: dict) -> str | None:
+    """None when two results are of one model; else the key that tells them apart. The model is
+    the same ``checkpoint_sha256`` (network and weights) when both record it, whatever they call
+    the checkpoint; else the same ``checkpoint`` name (results written before the digest was
+    recorded)."""
+    mine, theirs = summary.get("checkpoint_sha256"), other.get("checkpoint_sha256")
     if mine is not None and theirs is not None:
-        if mine != theirs:
-            raise EvaluationError(f"{s.path}: checkpoint_sha256: {mine[:12]}..., but {first.path} has "
-                                  f"{theirs[:12]}...: only results of one model pool")
-        return
-    if s.summary.get("checkpoint") != first.summary.get("checkpoint"):
+        return None if mine == theirs else "checkpoint_sha256"
+    return None if summary.get("checkpoint") == other.get("checkpoint") else "checkpoint"
+
+
+def _check_same_model(s: Side, first: Side) -> None:
+    """Pooled results must be of one model (:func:`model_difference`). One-line error naming the
+    file and key."""
+    key = model_difference(s.summary, first.summary)
+    if key == "checkpoint_sha256":
+        mine, theirs = s.summary[key], first.summary[key]
+        raise EvaluationError(f"{s.path}: checkpoint_sha256: {mine[:12]}..., but {first.path} has "
+                              f"{theirs[:12]}...: only results of one model pool")
+    if key == "checkpoint":
         raise EvaluationError(f"{s.path}: checkpoint: {s.summary.get('checkpoint')!r}, but {first.path} has "
                               f"{first.summary.get('checkpoint')!r}: only results of one row pool (results "
                               "that name a checkpoint differently pool when both record checkpoint_sha256)")

@@ -42,7 +42,17 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from actors.compare import Side, _candidates, _check_candidates, _episodes, _grippers, _side, pool, table_rate
+from actors.compare import (
+    Side,
+    _candidates,
+    _check_candidates,
+    _episodes,
+    _grippers,
+    _side,
+    model_difference,
+    pool,
+    table_rate,
+)
 from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_result, row_label
 
 RUNS_FORMAT = "adagrasp-scale-run-comparison/1"
@@ -72,15 +82,6 @@ def _check_trained(rf: RunFile) -> None:
     if rf.summary.get("checkpoint_sha256") is None and rf.summary.get("checkpoint") is None:
         raise EvaluationError(f"{rf.path}: checkpoint: none ({rf.summary.get('policy')} is not a trained model; "
                               "runs compares training runs)")
-
-
-def _model_differs(rf: RunFile, other: RunFile) -> str | None:
-    """None when two results are of one model; else the key that tells them apart:
-    ``checkpoint_sha256`` when both record it, else ``checkpoint`` (the name)."""
-    mine, theirs = rf.summary.get("checkpoint_sha256"), other.summary.get("checkpoint_sha256")
-    if mine is not None and theirs is not None:
-        return None if mine == theirs else "checkpoint_sha256"
-    return None if rf.summary.get("checkpoint") == other.summary.get("checkpoint") else "checkpoint"
 
 
 def _models_line(key: str, rf: RunFile, other: RunFile) -> str:
@@ -130,26 +131,26 @@ def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:
         for i, run in enumerate(runs):
             for rf in run:
                 _check_trained(rf)
-                key = _model_differs(rf, run[0])
+                key = model_difference(rf.summary, run[0].summary)
                 if key:
                     raise EvaluationError(f"{_models_line(key, rf, run[0])}, of the same run (a run's files are "
                                           "one model on other scene seeds)")
             for other in runs[:i]:
-                if _model_differs(run[0], other[0]) is None:
+                if model_difference(run[0].summary, other[0].summary) is None:
                     raise EvaluationError(f"{run[0].path}: checkpoint: the model of {other[0].path}, also a run of "
                                           f"side {tag} (each run of a side is another training run)")
     runs_a, runs_b = sides
     if not paired:
         for rb in runs_b:
             for ra in runs_a:
-                if _model_differs(rb[0], ra[0]) is None:
+                if model_difference(rb[0].summary, ra[0].summary) is None:
                     raise EvaluationError(f"{rb[0].path}: checkpoint: the model of {ra[0].path} on side A: two "
                                           "rows of one model compare with --paired")
         return
     if len(runs_a) != len(runs_b):
         raise EvaluationError(f"--paired: side A has {len(runs_a)} runs and side B {len(runs_b)}: pairs need as many")
     for ra, rb in zip(runs_a, runs_b):
-        key = _model_differs(rb[0], ra[0])
+        key = model_difference(rb[0].summary, ra[0].summary)
         if key:
             raise EvaluationError(f"{_models_line(key, rb[0], ra[0])}: --paired pairs the rows of one training "
                                   "run's model")
@@ -315,20 +316,22 @@ def t_test(rates_a: np.ndarray, rates_b: np.ndarray, paired: bool) -> dict:
     """Welch's (unpaired) or Student's paired t: p-value, 95% interval of the difference and its
     degrees of freedom; all None when the runs have no spread (every run rate of both sides, or
     every per-run difference, the same up to rounding): t is undefined."""
+    name = "paired t" if paired else "Welch t"
     if paired:
-        d = rates_b - rates_a
-        se, df = d.std(ddof=1) / math.sqrt(len(d)), len(d) - 1.0
+        se = (rates_b - rates_a).std(ddof=1) / math.sqrt(len(rates_a))
     else:
         va, vb = rates_a.var(ddof=1) / len(rates_a), rates_b.var(ddof=1) / len(rates_b)
         se = math.sqrt(va + vb)
-        df = (va + vb) ** 2 / (va**2 / (len(rates_a) - 1) + vb**2 / (len(rates_b) - 1)) if se >= 1e-12 else math.nan
-    diff = float(rates_b.mean() - rates_a.mean())
     if se < 1e-12:
-        return {"test": "paired t" if paired else "Welch t", "p_value": None, "ci95": None, "df": None}
+        return {"test": name, "p_value": None, "ci95": None, "df": None}
+    if paired:
+        df = len(rates_a) - 1.0
+    else:
+        df = (va + vb) ** 2 / (va**2 / (len(rates_a) - 1) + vb**2 / (len(rates_b) - 1))
+    diff = float(rates_b.mean() - rates_a.mean())
     half = float(stats.t.ppf(0.975, df)) * se
     p = float(2 * stats.t.sf(abs(diff) / se, df))
-    return {"test": "paired t" if paired else "Welch t", "p_value": p, "ci95": [diff - half, diff + half],
-            "df": float(df)}
+    return {"test": name, "p_value": p, "ci95": [diff - half, diff + half], "df": float(df)}
 
 
 def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: bool,
