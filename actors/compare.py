@@ -159,10 +159,15 @@ POOL_KEYS = ("scene", "objects", "policy", "cameras", "calibration")
 
 def _poolable(key: str, value):
     """What of a result's ``key`` must agree between pooled files: a calibration record without
-    its ``sha256`` (results written before the file hash was recorded lack it, and the source,
-    prior and per-gripper fits still name the calibration), anything else as it is."""
+    its ``sha256`` and its grippers' ``scenes`` (results written before the file hash or the scene
+    count was recorded lack them, and the source, prior and per-gripper fits still name the
+    calibration), anything else as it is."""
     if key == "calibration" and isinstance(value, dict):
-        return {k: v for k, v in value.items() if k != "sha256"}
+        fits = value.get("grippers")
+        if isinstance(fits, dict):
+            fits = {g: {k: v for k, v in f.items() if k != "scenes"} if isinstance(f, dict) else f
+                    for g, f in fits.items()}
+        return {**{k: v for k, v in value.items() if k != "sha256"}, "grippers": fits}
     return value
 
 

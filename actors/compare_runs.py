@@ -27,7 +27,8 @@ files must be results of one cell (:data:`CELL_KEYS` and the gripper names), eac
 each run of a side another model (``checkpoint_sha256``, else the checkpoint name), no model on
 both sides unless paired, and the files of one run one model on different scene seeds (as
 ``evaluate compare --also``). A per-gripper file must have records of every gripper of the cell
-(or of ``--gripper``). A scene whose objects differ between two compared records stops the
+(or of ``--gripper``). The runs of a calibrated side must be calibrated from as many scenes per
+gripper, where their results record it (:func:`calibration_budget`). A scene whose objects differ between two compared records stops the
 comparison with one line naming the file, unless ``--drop-mismatched-scenes`` leaves it out.
 """
 
@@ -101,6 +102,36 @@ def _read_side(tag: str, groups: list[list[str]]) -> list[list[RunFile]]:
     return runs
 
 
+def calibration_budget(summary: dict) -> dict[str, int] | None:
+    """Gripper name -> the scenes its calibration trials came from, for a calibrated result that
+    records them for every gripper; None otherwise (no calibration, or results written before the
+    scene count was recorded: their ``trials`` count grasps, several per scene of a pile)."""
+    calibration = summary.get("calibration")
+    fits = calibration.get("grippers") if isinstance(calibration, dict) else None
+    if not isinstance(fits, dict) or not fits:
+        return None
+    budget = {g: fit.get("scenes") if isinstance(fit, dict) else None for g, fit in sorted(fits.items())}
+    return budget if all(isinstance(n, int) and n > 0 for n in budget.values()) else None
+
+
+def _budget_text(budget: dict[str, int]) -> str:
+    counts = set(budget.values())
+    if len(counts) == 1:
+        return f"{counts.pop()} scenes per gripper"
+    return "scenes per gripper " + ", ".join(f"{g} {n}" for g, n in budget.items())
+
+
+def _check_calibration_budget(tag: str, files: list[RunFile]) -> None:
+    """The calibrated runs of one side were calibrated from as many scenes per gripper (a larger
+    budget is another method, not another run); files without the count are not checked."""
+    known = [(rf, b) for rf in files if (b := calibration_budget(rf.summary)) is not None]
+    for rf, budget in known[1:]:
+        head, first = known[0]
+        if budget != first:
+            raise EvaluationError(f"{rf.path}: calibration: {_budget_text(budget)}, but {head.path} (side {tag}) "
+                                  f"has {_budget_text(first)}: each side is one calibration budget")
+
+
 def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> None:
     """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names) and its side's row."""
     first = sides[0][0][0]
@@ -122,6 +153,7 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> None:
             if row_label(rf.summary) != row_label(head.summary):
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")
+        _check_calibration_budget(tag, [f for run in runs for f in run])
 
 
 def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:

@@ -89,6 +89,9 @@ class GripperFit:
     """Successful trials among them."""
     mean_score: float
     """Mean predicted success probability of the trials (before calibration)."""
+    scenes: int = 0
+    """Number of scenes (episode records) the trials came from: the calibration budget (a scene of
+    a pile gives several trials); 0 when not known (a fit from bare trials)."""
 
 
 @dataclass(frozen=True)
@@ -124,7 +127,8 @@ class Calibration:
             "sha256": self.sha256,
             "prior_sigma": self.prior_sigma,
             "grippers": {
-                n: {"shift": f.shift, "trials": f.trials, "successes": f.successes, "mean_score": f.mean_score}
+                n: {"shift": f.shift, "trials": f.trials, "successes": f.successes, "mean_score": f.mean_score,
+                    "scenes": f.scenes}
                 for n, f in self.grippers.items()
             },
         }
@@ -143,8 +147,9 @@ def apply_shifts(probs: np.ndarray, shifts: np.ndarray) -> np.ndarray:
 
 
 def fit_calibration(trials: dict[str, list[tuple[float, bool]]], source: str,
-                    prior_sigma: float = PRIOR_SIGMA) -> Calibration:
-    """A calibration from (score, success) trials per gripper name; ``source`` names their origin."""
+                    prior_sigma: float = PRIOR_SIGMA, scenes: dict[str, int] | None = None) -> Calibration:
+    """A calibration from (score, success) trials per gripper name; ``source`` names their origin,
+    ``scenes`` the number of scenes each gripper's trials came from (0 when not given)."""
     fits = {}
     for name, rows in trials.items():
         if not rows:
@@ -153,7 +158,8 @@ def fit_calibration(trials: dict[str, list[tuple[float, bool]]], source: str,
         ok = np.array([bool(y) for _, y in rows])
         if not np.all((scores >= 0.0) & (scores <= 1.0)):
             raise CalibrationError(f"{source}: score: gripper {name} has scores outside [0, 1]")
-        fits[name] = GripperFit(fit_shift(scores, ok, prior_sigma), len(rows), int(ok.sum()), float(scores.mean()))
+        fits[name] = GripperFit(fit_shift(scores, ok, prior_sigma), len(rows), int(ok.sum()), float(scores.mean()),
+                                (scenes or {}).get(name, 0))
     return Calibration(fits, float(prior_sigma), source)
 
 
@@ -170,6 +176,7 @@ def calibration_from_result(path: str, data: dict, prior_sigma: float = PRIOR_SI
     if not isinstance(episodes, list) or not episodes:
         raise CalibrationError(f"{path}: episode_results: missing or empty")
     trials: dict[str, list[tuple[float, bool]]] = {}
+    scenes: dict[str, int] = {}
     for n, record in enumerate(episodes):
         try:
             for t in record["trials"]:
@@ -178,4 +185,6 @@ def calibration_from_result(path: str, data: dict, prior_sigma: float = PRIOR_SI
                 trials.setdefault(str(t["gripper"]), []).append((float(t["score"]), t["success"]))
         except (KeyError, TypeError, ValueError) as e:
             raise CalibrationError(f"{path}: episode_results[{n}]: malformed trial ({type(e).__name__}: {e})") from None
-    return fit_calibration(trials, str(path), prior_sigma)
+        for name in {str(t["gripper"]) for t in record["trials"]}:
+            scenes[name] = scenes.get(name, 0) + 1
+    return fit_calibration(trials, str(path), prior_sigma, scenes)

@@ -85,13 +85,25 @@ def test_calibration_from_a_result():
     assert set(cal.grippers) == {"a", "b"}
     a, b = cal.grippers["a"], cal.grippers["b"]
     assert (a.trials, a.successes, b.trials, b.successes) == (10, 2, 10, 9)
+    assert (a.scenes, b.scenes) == (10, 10)
     assert a.mean_score == pytest.approx(0.9) and a.shift < -1.5 < 0.5 < b.shift
     assert a.shift == pytest.approx(fit_shift([0.9] * 10, [False] * 8 + [True] * 2))
     np.testing.assert_allclose(cal.shifts(["b", "a"]), [b.shift, a.shift])
     record = cal.to_dict()
     assert record["source"] == "cal.json" and record["grippers"]["a"]["successes"] == 2
+    assert record["grippers"]["b"]["scenes"] == 10
     with pytest.raises(CalibrationError, match=r"cal.json: episode_results: no trials of gripper c"):
         cal.shifts(["a", "c"])
+
+
+def test_the_budget_counts_scenes_not_trials():
+    """A pile gives several trials per scene: the budget is the scenes a gripper's trials came from."""
+    episodes = [{"trials": [{"gripper": "a", "score": 0.8, "success": False},
+                            {"gripper": "a", "score": 0.7, "success": True}]} for _ in range(3)]
+    episodes.append({"trials": [{"gripper": "b", "score": 0.5, "success": True}]})
+    cal = calibration_from_result("cal.json", {"policy": "fix-gripper", "episode_results": episodes})
+    assert (cal.grippers["a"].trials, cal.grippers["a"].scenes) == (6, 3)
+    assert (cal.grippers["b"].trials, cal.grippers["b"].scenes) == (1, 1)
 
 
 @pytest.mark.parametrize(

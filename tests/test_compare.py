@@ -461,8 +461,9 @@ def test_pooling_refuses_a_scene_twice_or_another_row(tmp_path, capsys):
 
 
 def test_pooling_reads_a_calibration_the_same_with_or_without_its_file_hash(tmp_path, capsys):
-    """A calibrated result written before the calibration file's hash was recorded pools with one
-    that records it; a calibration with another fit is another row, named in one line."""
+    """A calibrated result written before the calibration file's hash and scene counts were
+    recorded pools with one that records them; a calibration with another fit is another row,
+    named in one line."""
     fits = {"wsg_50": {"shift": -0.98, "trials": 56, "successes": 46, "mean_score": 0.92},
             "panda_hand": {"shift": 0.68, "trials": 52, "successes": 49, "mean_score": 0.89}}
     cal = {"source": "calibration/fit.json", "prior_sigma": 2.0, "grippers": fits}
@@ -470,7 +471,8 @@ def test_pooling_reads_a_calibration_the_same_with_or_without_its_file_hash(tmp_
     later = [21, 22, 23, 24, 25]
     files = {"a": write(tmp_path, "a", result("fix-gripper", FG_A, SEEDS)),
              "a2": write(tmp_path, "a2", result("fix-gripper", FG_A, later))}
-    for name, seeds, record in (("b", SEEDS, cal), ("b2", later, {**cal, "sha256": "ab" * 32}),
+    counted = {g: {**f, "scenes": 20} for g, f in fits.items()}
+    for name, seeds, record in (("b", SEEDS, cal), ("b2", later, {**cal, "sha256": "ab" * 32, "grippers": counted}),
                                 ("c2", later, {**cal, "sha256": "ab" * 32, "grippers": {
                                     **fits, "wsg_50": {**fits["wsg_50"], "shift": -0.5}}})):
         data = result("adagrasp", ada, seeds)

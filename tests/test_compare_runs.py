@@ -255,6 +255,26 @@ def _three_against_two(tmp_path, rng):
     return a, make_runs(tmp_path, "b", "adagrasp", 3, rng, models=["model:a0", "model:a1", "model:b2"])
 
 
+def _calibrated(tmp_path, rng, tag, scenes, count=2):
+    """``count`` calibrated adagrasp runs, each calibrated from ``scenes[i]`` scenes per gripper
+    (None: a result written before the count was recorded), two grasps per scene."""
+    runs = make_runs(tmp_path, tag, "adagrasp", count, rng, models=[f"model:c{i}" for i in range(count)])
+    for (path,), n in zip(runs, scenes):
+        data = json.load(open(path))
+        fits = {g: {"shift": 0.1, "trials": 2 * (n or 40), "successes": n or 40} for g in GRIPPERS}
+        if n is not None:
+            for fit in fits.values():
+                fit["scenes"] = n
+        data["calibration"] = {"source": f"{path}.cal", "prior_sigma": 2.0, "grippers": fits}
+        json.dump(data, open(path, "w"))
+    return runs
+
+
+def _two_calibration_budgets(tmp_path, rng):
+    raw = make_runs(tmp_path, "r", "adagrasp", 2, rng, models=["model:c0", "model:c1"])
+    return raw, _calibrated(tmp_path, rng, "b", [10, 40])
+
+
 @pytest.mark.parametrize("build, extra, needle", [
     (_same_model_twice, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
     (_digest_over_name, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
@@ -269,6 +289,8 @@ def _three_against_two(tmp_path, rng):
                                    r"model compare with --paired"),
     (_digest_on_one_file_only, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
     (_three_against_two, ["--paired"], r"--paired: side A has 2 runs and side B 3: pairs need as many"),
+    (_two_calibration_budgets, ["--paired"], r"b1\.json: calibration: 40 scenes per gripper, but .*b0\.json "
+                                              r"\(side B\) has 10 scenes per gripper: each side is one calibration"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, build, extra, needle):
     runs_a, runs_b = build(tmp_path, np.random.default_rng(9))
@@ -339,3 +361,24 @@ def test_cli_prints_and_writes_the_comparison(tmp_path, capsys):
     assert f"--json {tmp_path}: is a directory" in captured.err and captured.out == ""
     assert ev.cli(["runs", *cli_args(a, b, "--draws", "0")]) == 2
     assert "--draws 0: expected >= 1" in capsys.readouterr().err
+
+
+def test_calibrated_runs_of_one_budget_compare_with_their_raw_rows(tmp_path):
+    """Raw -> calibrated adagrasp of the same runs (paired) when the calibrated runs were fitted
+    from as many scenes per gripper, or when a result does not record its count; another count
+    for one gripper is another budget."""
+    rng = np.random.default_rng(12)
+    raw = make_runs(tmp_path, "r", "adagrasp", 2, rng, models=["model:c0", "model:c1"])
+    cal = _calibrated(tmp_path, rng, "b", [40, 40])
+    assert cr.calibration_budget(json.load(open(cal[0][0]))) == {g: 40 for g in sorted(GRIPPERS)}
+    assert cr.calibration_budget(json.load(open(raw[0][0]))) is None
+    assert cr.runs_cli(cli_args(raw, cal, "--paired"))["scenes"] == len(SEEDS)
+    old = _calibrated(tmp_path, rng, "o", [10, None])
+    assert cr.calibration_budget(json.load(open(old[1][0]))) is None
+    assert cr.runs_cli(cli_args(raw, old, "--paired"))["scenes"] == len(SEEDS)
+    data = json.load(open(cal[1][0]))
+    data["calibration"]["grippers"]["wsg_50"]["scenes"] = 39
+    json.dump(data, open(cal[1][0], "w"))
+    with pytest.raises(ev.EvaluationError, match=r"b1\.json: calibration: scenes per gripper panda_hand 40, wsg_50 "
+                                                 r"39, but .*b0\.json \(side B\) has 40 scenes per gripper"):
+        cr.runs_cli(cli_args(raw, cal, "--paired"))
