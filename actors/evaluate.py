@@ -10,6 +10,7 @@ Usage::
     python -m launcher evaluate table results/*.json --md results/table1.md
     python -m launcher evaluate compare results/a.json results/b.json   # paired, same scenes
     python -m launcher evaluate runs --a r1.json --a r2.json --b s1.json --b s2.json   # across training runs
+    python -m launcher evaluate holm cmp1.json cmp2.json cmp3.json   # Holm's correction over comparisons
 
 Protocol (docs/EVALUATION.md has the whole text):
 
@@ -845,6 +846,11 @@ def cli(argv: list[str]) -> int:
             from actors.compare_runs import runs_cli  # imported here: actors.compare_runs builds on this module
 
             runs_cli(argv[1:])
+            return 0
+        if argv and argv[0] == "holm":
+            from actors.holm import holm_cli  # imported here: actors.holm builds on this module
+
+            holm_cli(argv[1:])
             return 0
         summary = evaluate(argv)
     except (ValueError, SimulationError) as e:

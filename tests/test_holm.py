@@ -1,0 +1,148 @@
+"""``evaluate holm``: Holm's step-down correction over comparison files; the adjusted p-values,
+the files of ``evaluate compare`` and ``evaluate runs`` it reads, and its one-line errors."""
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from actors import compare as cmp
+from actors import compare_runs as cr
+from actors import evaluate as ev
+from actors import holm as hm
+from tests.test_compare_runs import cli_args, make_runs
+
+
+def holm_by_definition(p):
+    """The adjusted p-value of each test: the largest over every smaller-or-equal p (in sorted
+    order) of min(1, (m - rank) p), written as the textbook loop."""
+    m = len(p)
+    order = sorted(range(m), key=lambda i: (p[i], i))
+    out, running = [0.0] * m, 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p[i]))
+        out[i] = running
+    return out
+
+
+def test_adjusted_p_values_follow_the_step_down_rule():
+    # sorted 0.005 (x4 = 0.02), 0.01 (x3 = 0.03), 0.03 (x2 = 0.06), 0.04 (x1, raised to 0.06)
+    np.testing.assert_allclose(hm.holm([0.01, 0.04, 0.03, 0.005]), [0.03, 0.06, 0.06, 0.02])
+    rng = np.random.default_rng(0)
+    for m in (1, 2, 5, 9):
+        p = rng.uniform(0, 0.3, m).round(3)  # ties included
+        np.testing.assert_allclose(hm.holm(p), holm_by_definition(list(p)))
+    assert hm.holm([0.9, 0.8]).tolist() == [1.0, 1.0]
+
+
+def test_holm_keeps_the_family_wise_error_under_alpha_when_every_null_holds():
+    """m independent uniform p-values (every null true): any adjusted p <= 0.05 in at most 5% of
+    families (Holm controls it at alpha), while the uncorrected rule errs in 1 - 0.95^m."""
+    rng = np.random.default_rng(1)
+    p = rng.uniform(size=(20_000, 7))
+    any_holm = np.mean([hm.holm(row).min() <= 0.05 for row in p])
+    any_raw = np.mean(p.min(axis=1) <= 0.05)
+    assert any_holm <= 0.05 + 0.005 and abs(any_raw - (1 - 0.95**7)) < 0.015
+
+
+def _run_files(tmp_path, rng, count):
+    """``count`` evaluate runs comparison files, written by the tool itself."""
+    out = []
+    for k in range(count):
+        a = make_runs(tmp_path, f"a{k}-", "fix-gripper", 3, rng)
+        b = make_runs(tmp_path, f"b{k}-", "fix-gripper", 3, rng)
+        path = str(tmp_path / f"runs{k}.json")
+        cr.runs_cli(cli_args(a, b, "--json", path))
+        out.append(path)
+    return out
+
+
+def _compare_file(tmp_path, rng, name, policy_b="fix-gripper"):
+    """One evaluate compare file, written by the tool itself."""
+    a = make_runs(tmp_path, f"{name}a", "fix-gripper", 1, rng)[0][0]
+    b = make_runs(tmp_path, f"{name}b", policy_b, 1, rng)[0][0]
+    path = str(tmp_path / f"{name}.json")
+    cmp.compare_cli([a, b, "--resamples", "200", "--json", path])
+    return path
+
+
+def test_the_tools_own_files_are_one_family(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    files = _run_files(tmp_path, rng, 3) + [_compare_file(tmp_path, rng, "cmp")]
+    out = str(tmp_path / "holm.json")
+    record = hm.holm_cli([*files, "--json", out])
+    raw = [json.load(open(f))["t"]["p_value"] for f in files[:3]] + [json.load(open(files[3]))["p_value"]]
+    assert [r["p_value"] for r in record["comparisons"]] == raw
+    assert [r["holm_p"] for r in record["comparisons"]] == pytest.approx(holm_by_definition(raw))
+    assert [r["separated"] for r in record["comparisons"]] == [a <= 0.05 for a in holm_by_definition(raw)]
+    assert json.load(open(out)) == record and record["format"] == hm.HOLM_FORMAT
+    text = capsys.readouterr().out
+    assert "holm: 4 tests, family-wise level 0.05" in text and "fix-gripper: model:cmpa0 -> model:cmpb0" in text
+    randomization = hm.holm_cli([*files[:3], "--test", "randomization"])
+    assert [r["p_value"] for r in randomization["comparisons"]] == [
+        json.load(open(f))["randomization"]["p_value"] for f in files[:3]]
+    assert all(r["smallest_p"] == 0.1 for r in randomization["comparisons"])
+
+
+def _one_file(tmp_path, rng):
+    return _run_files(tmp_path, rng, 1)
+
+
+def _two_files(tmp_path, rng):
+    return _run_files(tmp_path, rng, 2)
+
+
+def _twice(tmp_path, rng):
+    f = _run_files(tmp_path, rng, 1)
+    return f + f
+
+
+def _evaluation_result(tmp_path, rng):
+    return _run_files(tmp_path, rng, 1) + [make_runs(tmp_path, "e", "fix-gripper", 1, rng)[0][0]]
+
+
+def _no_permutation_test(tmp_path, rng):
+    return _run_files(tmp_path, rng, 1) + [_compare_file(tmp_path, rng, "ada", policy_b="adagrasp")]
+
+
+def _no_spread(tmp_path, rng):
+    files = _run_files(tmp_path, rng, 2)
+    data = json.load(open(files[1]))
+    data["t"]["p_value"] = None
+    json.dump(data, open(files[1], "w"))
+    return files
+
+
+def _not_json(tmp_path, rng):
+    bad = tmp_path / "broken.json"
+    bad.write_text('{"format": ')
+    return _run_files(tmp_path, rng, 1) + [str(bad)]
+
+
+@pytest.mark.parametrize("build, extra, needle", [
+    (_one_file, [], r"1 comparison file\(s\): a correction needs at least 2 tests"),
+    (_twice, [], r"runs0\.json: named twice"),
+    (_evaluation_result, [], r"e0\.json: format: 'adagrasp-scale-evaluation/1', expected"),
+    (_no_permutation_test, [], r"ada\.json: p_value: none \(an adagrasp row against a per-gripper row"),
+    (_no_spread, [], r"runs1\.json: t: p_value: none \(the runs have no spread"),
+    (_not_json, [], r"broken\.json: not JSON"),
+    (_two_files, ["--alpha", "1.5"], r"--alpha 1\.5: expected a level between 0 and 1"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, build, extra, needle):
+    files = build(tmp_path, np.random.default_rng(3))
+    capsys.readouterr()
+    with pytest.raises(ev.EvaluationError, match=needle):
+        hm.holm_cli([*files, *extra])
+    assert ev.cli(["holm", *files, *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("evaluate: error: ") and "\n" not in err
+
+
+def test_the_order_of_the_files_does_not_change_a_files_adjusted_p(tmp_path):
+    files = _run_files(tmp_path, np.random.default_rng(5), 3)
+    by_order = []
+    for perm in itertools.permutations(files):
+        rec = hm.correct(list(perm))
+        by_order.append({r["path"]: r["holm_p"] for r in rec["comparisons"]})
+    assert all(d == by_order[0] for d in by_order)
