@@ -28,8 +28,9 @@ each run of a side another model (``checkpoint_sha256``, else the checkpoint nam
 both sides unless paired, and the files of one run one model on different scene seeds (as
 ``evaluate compare --also``). A per-gripper file must have records of every gripper of the cell
 (or of ``--gripper``). The runs of a calibrated side must be calibrated from as many scenes per
-gripper, where their results record it (:func:`calibration_budget`). A scene whose objects differ between two compared records stops the
-comparison with one line naming the file, unless ``--drop-mismatched-scenes`` leaves it out.
+gripper, where their results record it (:func:`calibration_budget`). A scene whose objects differ
+between two compared records stops the comparison with one line naming the file, unless
+``--drop-mismatched-scenes`` leaves it out.
 """
 
 from __future__ import annotations

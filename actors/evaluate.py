@@ -700,15 +700,20 @@ _REQUIRED = ("format", "policy", "scene", "objects_label", "grippers_label", "gr
              "episodes", "seed", "average", "per_gripper")
 
 
-def read_result(path: str | Path) -> dict:
-    """A result JSON written by ``evaluate --json``; raises one line naming the file and the key."""
+def read_json(path: str | Path):
+    """The parsed JSON of the file ``path``; one line naming the file when it is missing or not JSON."""
     path = Path(path)
     if not path.is_file():
-        raise EvaluationError(f"{path}: result file not found")
+        raise EvaluationError(f"{path}: file not found")
     try:
-        data = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise EvaluationError(f"{path}: not valid JSON ({' '.join(str(e).split())})") from None
+
+
+def read_result(path: str | Path) -> dict:
+    """A result JSON written by ``evaluate --json``; raises one line naming the file and the key."""
+    data = read_json(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         got = data.get("format") if isinstance(data, dict) else type(data).__name__
         raise EvaluationError(f"{path}: format: expected {FORMAT!r}, got {got!r}")

@@ -1,10 +1,10 @@
 """``python -m launcher evaluate holm FILE.json ...``: Holm's correction over several comparisons.
 
 Each ``evaluate compare`` or ``evaluate runs`` call tests one difference. Read together, several
-such tests find a difference by chance more often than each p-value says: with seven tests at
-0.05, three in ten sets of seven null comparisons have a p-value below 0.05 (1 - 0.95^7). Holm's step-down
+such tests find a difference by chance more often than each p-value says: seven independent null
+comparisons give a p-value below 0.05 three times in ten (1 - 0.95^7). Holm's step-down
 procedure controls the chance of any false finding among the m tests (the family-wise error) at
-the level asked, with no assumption on how the tests depend on each other:
+the level asked, provided each p-value is valid, however the tests depend on each other:
 
 - sort the p-values p_(1) <= ... <= p_(m);
 - the adjusted p-value of the i-th smallest is max over j <= i of min(1, (m - j + 1) p_(j));
@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import numpy as np
 
 from actors.compare import COMPARE_FORMAT
 from actors.compare_runs import RUNS_FORMAT
-from actors.evaluate import EvaluationError, _write_atomic, check_output_path
+from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_json
 
 HOLM_FORMAT = "adagrasp-scale-holm/1"
 """Value of the ``format`` key of a Holm correction JSON."""
@@ -48,43 +49,51 @@ def holm(p_values) -> np.ndarray:
     return adjusted
 
 
+def _number(path: str, key: str, value, optional: bool = False):
+    """``value`` as a float; one line naming the file and ``key`` when it is not a number (None
+    passes through when ``optional``)."""
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise EvaluationError(f"{path}: {key}: expected a number, got {value!r}")
+    return float(value)
+
+
 def _read(path: str, test: str) -> dict:
     """One comparison file: its label, difference, the p-value corrected and the smallest it can be."""
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except OSError as e:
-        raise EvaluationError(f"{path}: cannot read ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
-        raise EvaluationError(f"{path}: not JSON ({e.msg} at line {e.lineno})") from None
-    fmt = data.get("format") if isinstance(data, dict) else None
-    if fmt == COMPARE_FORMAT:
-        p, smallest, difference = data.get("p_value"), None, data.get("rate_difference")
-        a, b = data["a"], data["b"]
-        label = f"{a.get('row', '?')} -> {b.get('row', '?')}"
-        if a.get("row") == b.get("row"):
-            label = f"{a.get('row', '?')}: {a.get('checkpoint')} -> {b.get('checkpoint')}"
-        if p is None:
-            raise EvaluationError(f"{path}: p_value: none (an adagrasp row against a per-gripper row has no "
-                                  "permutation test; its interval is the comparison)")
-        name = "scene permutation"
-    elif fmt == RUNS_FORMAT:
-        record = data.get(test)
-        if not isinstance(record, dict) or "p_value" not in record:
-            raise EvaluationError(f"{path}: {test}: missing (a run comparison records 't' and 'randomization')")
-        p, smallest, difference = record["p_value"], record.get("smallest_p"), data.get("mean_difference")
-        label = f"{data['a'].get('row', '?')} -> {data['b'].get('row', '?')} (runs)"
-        if p is None:
-            raise EvaluationError(f"{path}: {test}: p_value: none (the runs have no spread, so t is undefined; "
-                                  "use --test randomization)")
-        name = record.get("test", test)
-    else:
+    data = read_json(path)
+    fmt = data.get("format") if isinstance(data, dict) else type(data).__name__
+    if fmt not in (COMPARE_FORMAT, RUNS_FORMAT):
         raise EvaluationError(f"{path}: format: {fmt!r}, expected {COMPARE_FORMAT!r} (evaluate compare) or "
                               f"{RUNS_FORMAT!r} (evaluate runs)")
-    if not isinstance(p, (int, float)) or not 0.0 <= p <= 1.0:
-        raise EvaluationError(f"{path}: p_value: expected a number in [0, 1], got {p!r}")
-    return {"path": path, "label": label, "scene": data.get("scene"), "difference": difference, "test": name,
-            "p_value": float(p), "smallest_p": smallest}
+    for side in ("a", "b"):
+        if not isinstance(data.get(side), dict):
+            raise EvaluationError(f"{path}: {side}: missing or not an object")
+    a, b = data["a"], data["b"]
+    label = f"{a.get('row', '?')} -> {b.get('row', '?')}"
+    if fmt == COMPARE_FORMAT:
+        if a.get("row") == b.get("row"):
+            label = f"{a.get('row', '?')}: {a.get('checkpoint')} -> {b.get('checkpoint')}"
+        if data.get("p_value") is None:
+            raise EvaluationError(f"{path}: p_value: none (an adagrasp row against a per-gripper row has no "
+                                  "permutation test; its interval is the comparison)")
+        record, key, difference, smallest = data, "p_value", data.get("rate_difference"), None
+    else:
+        label += " (runs)"
+        record, key = data.get(test), f"{test}: p_value"
+        if not isinstance(record, dict) or "p_value" not in record:
+            raise EvaluationError(f"{path}: {test}: missing (a run comparison records 't' and 'randomization')")
+        if record["p_value"] is None:
+            raise EvaluationError(f"{path}: {key}: none (the runs have no spread, so t is undefined; "
+                                  "use --test randomization)")
+        difference = data.get("mean_difference")
+        smallest = _number(path, f"{test}: smallest_p", record.get("smallest_p"), optional=True)
+    p = _number(path, key, record["p_value"])
+    if not 0.0 <= p <= 1.0:
+        raise EvaluationError(f"{path}: {key}: expected a value in [0, 1], got {p!r}")
+    return {"path": path, "label": label, "scene": data.get("scene"),
+            "difference": _number(path, "difference", difference, optional=True),
+            "test": record.get("test", test), "p_value": p, "smallest_p": smallest}
 
 
 def correct(paths: list[str], test: str = "t", alpha: float = 0.05) -> dict:
@@ -95,9 +104,11 @@ def correct(paths: list[str], test: str = "t", alpha: float = 0.05) -> dict:
         raise EvaluationError(f"--alpha {alpha!r}: expected a level between 0 and 1")
     if len(paths) < 2:
         raise EvaluationError(f"{len(paths)} comparison file(s): a correction needs at least 2 tests")
-    if len(set(paths)) != len(paths):
-        twice = next(p for p in paths if paths.count(p) > 1)
-        raise EvaluationError(f"{twice}: named twice (one test counted twice would weaken the correction)")
+    real = [os.path.realpath(p) for p in paths]
+    for i, r in enumerate(real):
+        if r in real[:i]:
+            raise EvaluationError(f"{paths[i]}: named twice (as {paths[real.index(r)]}; one test counted twice "
+                                  "would weaken the correction)")
     rows = [_read(p, test) for p in paths]
     adjusted = holm([r["p_value"] for r in rows])
     for r, a in zip(rows, adjusted):
@@ -125,7 +136,8 @@ def _parser() -> argparse.ArgumentParser:
         description="Holm's step-down correction over the p-values of several evaluate compare / evaluate runs "
         "files read as one family of tests.",
     )
-    ap.add_argument("files", nargs="+", metavar="COMPARISON.json", help="evaluate compare or evaluate runs --json files")
+    ap.add_argument("files", nargs="+", metavar="COMPARISON.json",
+                    help="evaluate compare or evaluate runs --json files")
     ap.add_argument("--test", default="t", choices=TESTS,
                     help="which test of an evaluate runs file is corrected (default: t)")
     ap.add_argument("--alpha", type=float, default=0.05, help="family-wise error level (default: 0.05)")

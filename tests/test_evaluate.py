@@ -364,7 +364,7 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
     old = relabel(single, tmp_path, "old", format="something-else")
     md = tmp_path / "never.md"
     for files, needle in (([single_path, dup], "the same cell is already in"), ([bad], "not valid JSON"),
-                          ([old], "format: expected"), ([tmp_path / "gone.json"], "result file not found")):
+                          ([old], "format: expected"), ([tmp_path / "gone.json"], "gone.json: file not found")):
         assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and needle in err

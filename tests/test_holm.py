@@ -29,9 +29,11 @@ def holm_by_definition(p):
 def test_adjusted_p_values_follow_the_step_down_rule():
     # sorted 0.005 (x4 = 0.02), 0.01 (x3 = 0.03), 0.03 (x2 = 0.06), 0.04 (x1, raised to 0.06)
     np.testing.assert_allclose(hm.holm([0.01, 0.04, 0.03, 0.005]), [0.03, 0.06, 0.06, 0.02])
+    # ties: 0.01 and 0.01 (x3 = 0.03, x2 = 0.02 raised to 0.03), 0.04 (x1 = 0.04)
+    np.testing.assert_allclose(hm.holm([0.01, 0.04, 0.01]), [0.03, 0.04, 0.03])
     rng = np.random.default_rng(0)
-    for m in (1, 2, 5, 9):
-        p = rng.uniform(0, 0.3, m).round(3)  # ties included
+    for m in (1, 2, 5, 9, 30):
+        p = rng.uniform(0, 0.3, m).round(2)  # rounded: ties among 30 values
         np.testing.assert_allclose(hm.holm(p), holm_by_definition(list(p)))
     assert hm.holm([0.9, 0.8]).tolist() == [1.0, 1.0]
 
@@ -114,6 +116,52 @@ def _no_spread(tmp_path, rng):
     return files
 
 
+def _edited(tmp_path, rng, edit, compare=False):
+    """A family of two whose second file (a runs file, or a compare file) is edited by ``edit``."""
+    (tmp_path / "more").mkdir()
+    files = _run_files(tmp_path, rng, 1) + ([_compare_file(tmp_path, rng, "cmp")] if compare
+                                            else _run_files(tmp_path / "more", rng, 1))
+    data = json.load(open(files[1]))
+    json.dump(edit(data), open(files[1], "w"))
+    return files
+
+
+def _no_side(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {k: v for k, v in d.items() if k != "a"}, compare=True)
+
+
+def _side_not_an_object(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {**d, "b": "x"})
+
+
+def _a_list(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: [d])
+
+
+def _p_true(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {**d, "p_value": True}, compare=True)
+
+
+def _difference_text(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {**d, "mean_difference": "+0.1"})
+
+
+def _p_out_of_range(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {**d, "t": {**d["t"], "p_value": 1.5}})
+
+
+def _same_file_by_another_path(tmp_path, rng):
+    files = _run_files(tmp_path, rng, 1)
+    (tmp_path / "d").mkdir()
+    return files + [str(tmp_path / "d" / ".." / "runs0.json")]
+
+
+def _not_text(tmp_path, rng):
+    bad = tmp_path / "binary.json"
+    bad.write_bytes(b"\xff\xfe{")
+    return _run_files(tmp_path, rng, 1) + [str(bad)]
+
+
 def _not_json(tmp_path, rng):
     bad = tmp_path / "broken.json"
     bad.write_text('{"format": ')
@@ -126,7 +174,15 @@ def _not_json(tmp_path, rng):
     (_evaluation_result, [], r"e0\.json: format: 'adagrasp-scale-evaluation/1', expected"),
     (_no_permutation_test, [], r"ada\.json: p_value: none \(an adagrasp row against a per-gripper row"),
     (_no_spread, [], r"runs1\.json: t: p_value: none \(the runs have no spread"),
-    (_not_json, [], r"broken\.json: not JSON"),
+    (_not_json, [], r"broken\.json: not valid JSON"),
+    (_not_text, [], r"binary\.json: not valid JSON"),
+    (_no_side, [], r"cmp\.json: a: missing or not an object"),
+    (_side_not_an_object, [], r"runs0\.json: b: missing or not an object"),
+    (_a_list, [], r"runs0\.json: format: 'list', expected"),
+    (_p_true, [], r"cmp\.json: p_value: expected a number, got True"),
+    (_difference_text, [], r"runs0\.json: difference: expected a number, got '\+0\.1'"),
+    (_p_out_of_range, [], r"runs0\.json: t: p_value: expected a value in \[0, 1\], got 1\.5"),
+    (_same_file_by_another_path, [], r"runs0\.json: named twice \(as .*runs0\.json"),
     (_two_files, ["--alpha", "1.5"], r"--alpha 1\.5: expected a level between 0 and 1"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, build, extra, needle):
