@@ -34,12 +34,11 @@ comparison stops with one line naming the file and the key.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import dataclass
 
 import numpy as np
 
-from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_result, row_label
+from actors.evaluate import EvaluationError, check_output_path, read_result, row_label, write_json
 
 BOOTSTRAP_RESAMPLES = 10_000
 """Scene resamples of the bootstrap interval."""
@@ -163,11 +162,10 @@ def _poolable(key: str, value):
     count was recorded lack them, and the source, prior and per-gripper fits still name the
     calibration), anything else as it is."""
     if key == "calibration" and isinstance(value, dict):
-        fits = value.get("grippers")
-        if isinstance(fits, dict):
-            fits = {g: {k: v for k, v in f.items() if k != "scenes"} if isinstance(f, dict) else f
-                    for g, f in fits.items()}
-        return {**{k: v for k, v in value.items() if k != "sha256"}, "grippers": fits}
+        value = {k: v for k, v in value.items() if k != "sha256"}
+        if isinstance(value.get("grippers"), dict):
+            value["grippers"] = {g: {k: v for k, v in f.items() if k != "scenes"} if isinstance(f, dict) else f
+                                 for g, f in value["grippers"].items()}
     return value
 
 
@@ -491,5 +489,5 @@ def compare_cli(argv: list[str]) -> dict:
     result = compare(sa, sb, args.resamples, args.seed)
     print(report(result), end="")
     if args.json:
-        _write_atomic(args.json, json.dumps(result, indent=1) + "\n")
+        write_json(args.json, result)
     return result

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 from dataclasses import dataclass
 
@@ -55,7 +54,7 @@ from actors.compare import (
     pool,
     table_rate,
 )
-from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_result, row_label
+from actors.evaluate import EvaluationError, check_output_path, read_result, row_label, write_json
 
 RUNS_FORMAT = "adagrasp-scale-run-comparison/1"
 """Value of the ``format`` key of a run comparison JSON."""
@@ -126,8 +125,10 @@ def _check_calibration_budget(tag: str, files: list[RunFile]) -> None:
     """The calibrated runs of one side were calibrated from as many scenes per gripper (a larger
     budget is another method, not another run); files without the count are not checked."""
     known = [(rf, b) for rf in files if (b := calibration_budget(rf.summary)) is not None]
+    if not known:
+        return
+    head, first = known[0]
     for rf, budget in known[1:]:
-        head, first = known[0]
         if budget != first:
             raise EvaluationError(f"{rf.path}: calibration: {_budget_text(budget)}, but {head.path} (side {tag}) "
                                   f"has {_budget_text(first)}: each side is one calibration budget")
@@ -478,5 +479,5 @@ def runs_cli(argv: list[str]) -> dict:
     result = compare_runs(runs_a, runs_b, info, args.paired, args.draws, args.seed)
     print(report(result), end="")
     if args.json:
-        _write_atomic(args.json, json.dumps(result, indent=1) + "\n")
+        write_json(args.json, result)
     return result

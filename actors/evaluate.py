@@ -738,6 +738,11 @@ def _write_atomic(path: str | Path, text: str) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def write_json(path: str | Path, record) -> None:
+    """``record`` as the project's JSON files are written (indent 1, a final newline), atomically."""
+    _write_atomic(path, json.dumps(record, indent=1) + "\n")
+
+
 def check_output_path(flag: str, path: str | None) -> None:
     """Raise one line when ``path`` (an output of ``flag``) cannot be written, before any work is done."""
     if path is None:
@@ -819,7 +824,7 @@ def evaluate(argv: list[str]) -> dict:
     }
     summary = summarise(plan, results, argv, args.grippers, extra)
     if args.json:
-        _write_atomic(args.json, json.dumps(summary, indent=1) + "\n")
+        write_json(args.json, summary)
     if args.md:
         _write_atomic(args.md, table_markdown([(args.json or "(this run)", summary)]))
     return summary

@@ -21,14 +21,13 @@ alpha whatever the data: the report gives each file's smallest possible p-value)
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
 import numpy as np
 
 from actors.compare import COMPARE_FORMAT
 from actors.compare_runs import RUNS_FORMAT
-from actors.evaluate import EvaluationError, _write_atomic, check_output_path, read_json
+from actors.evaluate import EvaluationError, check_output_path, read_json, write_json
 
 HOLM_FORMAT = "adagrasp-scale-holm/1"
 """Value of the ``format`` key of a Holm correction JSON."""
@@ -152,5 +151,5 @@ def holm_cli(argv: list[str]) -> dict:
     result = correct(args.files, args.test, args.alpha)
     print(report(result), end="")
     if args.json:
-        _write_atomic(args.json, json.dumps(result, indent=1) + "\n")
+        write_json(args.json, result)
     return result

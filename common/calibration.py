@@ -178,13 +178,15 @@ def calibration_from_result(path: str, data: dict, prior_sigma: float = PRIOR_SI
     trials: dict[str, list[tuple[float, bool]]] = {}
     scenes: dict[str, int] = {}
     for n, record in enumerate(episodes):
+        names = set()
         try:
             for t in record["trials"]:
                 if not isinstance(t["success"], bool):
                     raise ValueError(f"success: expected true or false, got {t['success']!r}")
+                names.add(str(t["gripper"]))
                 trials.setdefault(str(t["gripper"]), []).append((float(t["score"]), t["success"]))
         except (KeyError, TypeError, ValueError) as e:
             raise CalibrationError(f"{path}: episode_results[{n}]: malformed trial ({type(e).__name__}: {e})") from None
-        for name in {str(t["gripper"]) for t in record["trials"]}:
+        for name in names:
             scenes[name] = scenes.get(name, 0) + 1
     return fit_calibration(trials, str(path), prior_sigma, scenes)
