@@ -121,21 +121,25 @@ def _budget_text(budget: dict[str, int]) -> str:
     return "scenes per gripper " + ", ".join(f"{g} {n}" for g, n in budget.items())
 
 
-def _check_calibration_budget(tag: str, files: list[RunFile]) -> None:
+def _check_calibration_budget(tag: str, files: list[RunFile]) -> dict[str, int] | None:
     """The calibrated runs of one side were calibrated from as many scenes per gripper (a larger
-    budget is another method, not another run); files without the count are not checked."""
+    budget is another method, not another run); files without the count are not checked. Returns
+    the side's budget where every file records it, else None."""
     known = [(rf, b) for rf in files if (b := calibration_budget(rf.summary)) is not None]
     if not known:
-        return
+        return None
     head, first = known[0]
     for rf, budget in known[1:]:
         if budget != first:
             raise EvaluationError(f"{rf.path}: calibration: {_budget_text(budget)}, but {head.path} (side {tag}) "
                                   f"has {_budget_text(first)}: each side is one calibration budget")
+    return first if len(known) == len(files) else None
 
 
-def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> None:
-    """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names) and its side's row."""
+def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int] | None]:
+    """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names) and its side's row.
+    Returns each side's calibration budget (:func:`_check_calibration_budget`)."""
+    budgets = []
     first = sides[0][0][0]
     grippers = sorted(_candidates(first.path, first.summary))
     for tag, runs in zip("AB", sides):
@@ -155,7 +159,8 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> None:
             if row_label(rf.summary) != row_label(head.summary):
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")
-        _check_calibration_budget(tag, [f for run in runs for f in run])
+        budgets.append(_check_calibration_budget(tag, [f for run in runs for f in run]))
+    return budgets
 
 
 def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:
@@ -273,7 +278,8 @@ def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[s
     pooled and its columns the shared scenes in one order for every run.
 
     ``groups_a`` / ``groups_b``: per run, its result files. Returns (A's runs, B's runs, info:
-    ``scene_seeds`` used, ``dropped_scene_seeds``, ``left_out`` per run). Raises
+    ``scene_seeds`` used, ``dropped_scene_seeds``, ``left_out`` per run, ``calibration_scenes`` per
+    side: gripper name -> scenes its calibration came from, or None). Raises
     :class:`EvaluationError` (one line naming the file and the key) on the checks of the module
     docstring.
     """
@@ -281,7 +287,7 @@ def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[s
         if len(groups) < 2:
             raise EvaluationError(f"--{tag}: {len(groups)} run(s); the spread across runs needs at least 2 per side")
     sides = [_read_side("a", groups_a), _read_side("b", groups_b)]
-    _check_cell_and_rows(sides)
+    budgets = _check_cell_and_rows(sides)
     _check_models(sides, paired)
     grippers = _side_grippers(sides, only)
     kept, dropped, left_out = _scenes(sides, grippers, drop_mismatched)
@@ -302,7 +308,8 @@ def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[s
             built.append(Side(side.path, side.summary, side.grippers, side.successes[:, index],
                               side.attempts[:, index], side.dropped, side.unpaired, side.parts, tuple(kept)))
         out.append(built)
-    return out[0], out[1], {"scene_seeds": kept, "dropped_scene_seeds": dropped, "left_out": left_out}
+    return out[0], out[1], {"scene_seeds": kept, "dropped_scene_seeds": dropped, "left_out": left_out,
+                            "calibration_scenes": budgets}
 
 
 def run_rates(runs: list[Side]) -> np.ndarray:
@@ -381,10 +388,11 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
         p, smallest, how = relabel_p(ra, rb, rng, draws)
         test = f"run-relabelling test ({how})"
 
-    def side(runs: list[Side], rates: np.ndarray) -> dict:
+    def side(runs: list[Side], rates: np.ndarray, budget: dict[str, int] | None) -> dict:
         head = runs[0]
         return {
             "row": row_label(head.summary),
+            "calibration_scenes": budget,
             "grippers": head.grippers,
             "candidates": _candidates(head.path, head.summary) if head.pooled else None,
             "runs": [{"path": r.path, "checkpoint": r.summary.get("checkpoint"),
@@ -405,8 +413,8 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
         "dropped_scene_seeds": info["dropped_scene_seeds"],
         "left_out_scenes": info["left_out"],
         "paired": paired,
-        "a": side(runs_a, ra),
-        "b": side(runs_b, rb),
+        "a": side(runs_a, ra, info["calibration_scenes"][0]),
+        "b": side(runs_b, rb, info["calibration_scenes"][1]),
         "mean_difference": float(rb.mean() - ra.mean()),
         "run_differences": [float(x) for x in rb - ra] if paired else None,
         "t": t_test(ra, rb, paired),
@@ -414,12 +422,20 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
     }
 
 
+def side_label(side: dict) -> str:
+    """A side's row, with its calibration budget where recorded (``calibration_scenes``; comparisons
+    written before it was recorded lack the key)."""
+    budget = side.get("calibration_scenes")
+    row = side.get("row", "?")
+    return f"{row}, {_budget_text(budget)}" if isinstance(budget, dict) and budget else row
+
+
 def report(c: dict) -> str:
     """Text lines of a run comparison from :func:`compare_runs`."""
 
     def side(tag: str, s: dict) -> str:
         rates = " ".join(f"{r['rate']:.3f}" for r in s["runs"])
-        return (f"  {tag} {s['row']}, {len(s['runs'])} runs: {rates} -> mean {s['mean']:.3f} "
+        return (f"  {tag} {side_label(s)}, {len(s['runs'])} runs: {rates} -> mean {s['mean']:.3f} "
                 f"(sd {s['sd']:.3f}, range {s['range'][0]:.3f} to {s['range'][1]:.3f})")
 
     t = c["t"]

@@ -26,7 +26,7 @@ import os
 import numpy as np
 
 from actors.compare import COMPARE_FORMAT
-from actors.compare_runs import RUNS_FORMAT
+from actors.compare_runs import RUNS_FORMAT, side_label
 from actors.evaluate import EvaluationError, check_output_path, read_json, write_json
 
 HOLM_FORMAT = "adagrasp-scale-holm/1"
@@ -78,7 +78,13 @@ def _read(path: str, test: str) -> dict:
                                   "permutation test; its interval is the comparison)")
         record, key, difference, smallest = data, "p_value", data.get("rate_difference"), None
     else:
-        label += " (runs)"
+        for tag, side in (("a", a), ("b", b)):
+            budget = side.get("calibration_scenes")
+            if budget is not None and not (isinstance(budget, dict) and budget and all(
+                    isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in budget.values())):
+                raise EvaluationError(f"{path}: {tag}: calibration_scenes: expected null or gripper -> scenes "
+                                      f"(positive integers), got {budget!r}")
+        label = f"{side_label(a)} -> {side_label(b)} (runs)"
         record, key = data.get(test), f"{test}: p_value"
         if not isinstance(record, dict) or "p_value" not in record:
             raise EvaluationError(f"{path}: {test}: missing (a run comparison records 't' and 'randomization')")

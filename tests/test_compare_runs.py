@@ -372,10 +372,14 @@ def test_calibrated_runs_of_one_budget_compare_with_their_raw_rows(tmp_path):
     cal = _calibrated(tmp_path, rng, "b", [40, 40])
     assert cr.calibration_budget(json.load(open(cal[0][0]))) == {g: 40 for g in sorted(GRIPPERS)}
     assert cr.calibration_budget(json.load(open(raw[0][0]))) is None
-    assert cr.runs_cli(cli_args(raw, cal, "--paired"))["scenes"] == len(SEEDS)
+    both = cr.runs_cli(cli_args(raw, cal, "--paired"))
+    assert both["scenes"] == len(SEEDS)
+    assert both["a"]["calibration_scenes"] is None and both["b"]["calibration_scenes"] == {g: 40 for g in GRIPPERS}
+    assert "B adagrasp (calibrated), 40 scenes per gripper, 2 runs:" in cr.report(both)
     old = _calibrated(tmp_path, rng, "o", [10, None])
     assert cr.calibration_budget(json.load(open(old[1][0]))) is None
-    assert cr.runs_cli(cli_args(raw, old, "--paired"))["scenes"] == len(SEEDS)
+    mixed = cr.runs_cli(cli_args(raw, old, "--paired"))
+    assert mixed["scenes"] == len(SEEDS) and mixed["b"]["calibration_scenes"] is None
     data = json.load(open(cal[1][0]))
     data["calibration"]["grippers"]["wsg_50"]["scenes"] = 39
     json.dump(data, open(cal[1][0], "w"))

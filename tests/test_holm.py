@@ -11,7 +11,7 @@ from actors import compare as cmp
 from actors import compare_runs as cr
 from actors import evaluate as ev
 from actors import holm as hm
-from tests.test_compare_runs import cli_args, make_runs
+from tests.test_compare_runs import GRIPPERS, _calibrated, cli_args, make_runs
 
 
 def holm_by_definition(p):
@@ -156,6 +156,10 @@ def _same_file_by_another_path(tmp_path, rng):
     return files + [str(tmp_path / "d" / ".." / "runs0.json")]
 
 
+def _budget_text(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {**d, "b": {**d["b"], "calibration_scenes": {"wsg_50": "40"}}})
+
+
 def _not_text(tmp_path, rng):
     bad = tmp_path / "binary.json"
     bad.write_bytes(b"\xff\xfe{")
@@ -182,6 +186,8 @@ def _not_json(tmp_path, rng):
     (_p_true, [], r"cmp\.json: p_value: expected a number, got True"),
     (_difference_text, [], r"runs0\.json: difference: expected a number, got '\+0\.1'"),
     (_p_out_of_range, [], r"runs0\.json: t: p_value: expected a value in \[0, 1\], got 1\.5"),
+    (_budget_text, [], r"runs0\.json: b: calibration_scenes: expected null or gripper -> scenes \(positive "
+                       r"integers\), got \{'wsg_50': '40'\}"),
     (_same_file_by_another_path, [], r"runs0\.json: named twice \(as .*runs0\.json"),
     (_two_files, ["--alpha", "1.5"], r"--alpha 1\.5: expected a level between 0 and 1"),
 ])
@@ -202,3 +208,20 @@ def test_the_order_of_the_files_does_not_change_a_files_adjusted_p(tmp_path):
         rec = hm.correct(list(perm))
         by_order.append({r["path"]: r["holm_p"] for r in rec["comparisons"]})
     assert all(d == by_order[0] for d in by_order)
+
+
+def test_two_calibration_budgets_of_one_row_are_told_apart_by_their_labels(tmp_path):
+    """The same raw -> calibrated rows of the same runs, calibrated from 10 and from 40 scenes per
+    gripper: the runs files record each side's budget, and Holm's labels name it."""
+    rng = np.random.default_rng(6)
+    raw = make_runs(tmp_path, "r", "adagrasp", 2, rng, models=["model:c0", "model:c1"])
+    files = []
+    for n in (10, 40):
+        path = str(tmp_path / f"cal{n}.json")
+        cr.runs_cli(cli_args(raw, _calibrated(tmp_path, rng, f"b{n}-", [n, n]), "--paired", "--json", path))
+        files.append(path)
+    assert [json.load(open(f))["b"]["calibration_scenes"] for f in files] == [
+        {g: n for g in sorted(GRIPPERS)} for n in (10, 40)]
+    assert json.load(open(files[0]))["a"]["calibration_scenes"] is None
+    labels = [r["label"] for r in hm.holm_cli(files)["comparisons"]]
+    assert labels == [f"adagrasp -> adagrasp (calibrated), {n} scenes per gripper (runs)" for n in (10, 40)]
