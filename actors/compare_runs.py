@@ -111,10 +111,18 @@ def calibration_budget(summary: dict) -> dict[str, int] | None:
     if not isinstance(fits, dict) or not fits:
         return None
     budget = {g: fit.get("scenes") if isinstance(fit, dict) else None for g, fit in sorted(fits.items())}
-    return budget if all(isinstance(n, int) and n > 0 for n in budget.values()) else None
+    return budget if is_budget(budget) else None
+
+
+def is_budget(budget) -> bool:
+    """Whether ``budget`` is a calibration budget: a non-empty map of gripper names to scene
+    counts, positive integers (not booleans)."""
+    return isinstance(budget, dict) and bool(budget) and all(
+        isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in budget.values())
 
 
 def _budget_text(budget: dict[str, int]) -> str:
+    """``40 scenes per gripper``, or each gripper's count where they differ."""
     counts = set(budget.values())
     if len(counts) == 1:
         return f"{counts.pop()} scenes per gripper"
@@ -279,7 +287,8 @@ def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[s
 
     ``groups_a`` / ``groups_b``: per run, its result files. Returns (A's runs, B's runs, info:
     ``scene_seeds`` used, ``dropped_scene_seeds``, ``left_out`` per run, ``calibration_scenes`` per
-    side: gripper name -> scenes its calibration came from, or None). Raises
+    side: gripper name -> scenes its calibration came from, every calibrated gripper whatever
+    ``only`` keeps, or None). Raises
     :class:`EvaluationError` (one line naming the file and the key) on the checks of the module
     docstring.
     """
@@ -427,7 +436,7 @@ def side_label(side: dict) -> str:
     written before it was recorded lack the key)."""
     budget = side.get("calibration_scenes")
     row = side.get("row", "?")
-    return f"{row}, {_budget_text(budget)}" if isinstance(budget, dict) and budget else row
+    return f"{row}, {_budget_text(budget)}" if is_budget(budget) else row
 
 
 def report(c: dict) -> str:

@@ -15,7 +15,8 @@ one ordering, say). Which p-value is corrected: an ``evaluate compare`` file's s
 test (a comparison without one, adagrasp against a per-gripper row, stops with one line); an
 ``evaluate runs`` file's t test (``--test t``, the default) or its randomization test (``--test
 randomization``; few runs bound it below, so Holm's factor can keep every adjusted value above
-alpha whatever the data: the report gives each file's smallest possible p-value).
+alpha whatever the data: the report gives each file's smallest possible p-value). A file is
+labelled by its rows, a runs file's with each side's calibration budget where it records one.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import os
 import numpy as np
 
 from actors.compare import COMPARE_FORMAT
-from actors.compare_runs import RUNS_FORMAT, side_label
+from actors.compare_runs import RUNS_FORMAT, is_budget, side_label
 from actors.evaluate import EvaluationError, check_output_path, read_json, write_json
 
 HOLM_FORMAT = "adagrasp-scale-holm/1"
@@ -59,7 +60,8 @@ def _number(path: str, key: str, value, optional: bool = False):
 
 
 def _read(path: str, test: str) -> dict:
-    """One comparison file: its label, difference, the p-value corrected and the smallest it can be."""
+    """One comparison file: its label (its rows; a runs file's with each side's calibration budget
+    where recorded), difference, the p-value corrected and the smallest it can be."""
     data = read_json(path)
     fmt = data.get("format") if isinstance(data, dict) else type(data).__name__
     if fmt not in (COMPARE_FORMAT, RUNS_FORMAT):
@@ -80,8 +82,7 @@ def _read(path: str, test: str) -> dict:
     else:
         for tag, side in (("a", a), ("b", b)):
             budget = side.get("calibration_scenes")
-            if budget is not None and not (isinstance(budget, dict) and budget and all(
-                    isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in budget.values())):
+            if budget is not None and not is_budget(budget):
                 raise EvaluationError(f"{path}: {tag}: calibration_scenes: expected null or gripper -> scenes "
                                       f"(positive integers), got {budget!r}")
         label = f"{side_label(a)} -> {side_label(b)} (runs)"

@@ -378,6 +378,10 @@ def test_calibrated_runs_of_one_budget_compare_with_their_raw_rows(tmp_path):
     assert "B adagrasp (calibrated), 40 scenes per gripper, 2 runs:" in cr.report(both)
     old = _calibrated(tmp_path, rng, "o", [10, None])
     assert cr.calibration_budget(json.load(open(old[1][0]))) is None
+    flagged = json.load(open(cal[0][0]))
+    for fit in flagged["calibration"]["grippers"].values():
+        fit["scenes"] = True
+    assert cr.calibration_budget(flagged) is None
     mixed = cr.runs_cli(cli_args(raw, old, "--paired"))
     assert mixed["scenes"] == len(SEEDS) and mixed["b"]["calibration_scenes"] is None
     data = json.load(open(cal[1][0]))

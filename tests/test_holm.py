@@ -156,8 +156,11 @@ def _same_file_by_another_path(tmp_path, rng):
     return files + [str(tmp_path / "d" / ".." / "runs0.json")]
 
 
-def _budget_text(tmp_path, rng):
-    return _edited(tmp_path, rng, lambda d: {**d, "b": {**d["b"], "calibration_scenes": {"wsg_50": "40"}}})
+def _budget(value):
+    """A family whose second runs file's side B has ``calibration_scenes`` set to ``value``."""
+    def build(tmp_path, rng):
+        return _edited(tmp_path, rng, lambda d: {**d, "b": {**d["b"], "calibration_scenes": value}})
+    return build
 
 
 def _not_text(tmp_path, rng):
@@ -186,8 +189,11 @@ def _not_json(tmp_path, rng):
     (_p_true, [], r"cmp\.json: p_value: expected a number, got True"),
     (_difference_text, [], r"runs0\.json: difference: expected a number, got '\+0\.1'"),
     (_p_out_of_range, [], r"runs0\.json: t: p_value: expected a value in \[0, 1\], got 1\.5"),
-    (_budget_text, [], r"runs0\.json: b: calibration_scenes: expected null or gripper -> scenes \(positive "
-                       r"integers\), got \{'wsg_50': '40'\}"),
+    *[(_budget(value), [], r"runs0\.json: b: calibration_scenes: expected null or gripper -> scenes \(positive "
+                           r"integers\), got " + shown)
+      for value, shown in [({"wsg_50": "40"}, r"\{'wsg_50': '40'\}"), ([40], r"\[40\]"), ({}, r"\{\}"),
+                           ({"wsg_50": 0}, r"\{'wsg_50': 0\}"), ({"wsg_50": -1}, r"\{'wsg_50': -1\}"),
+                           ({"wsg_50": True}, r"\{'wsg_50': True\}"), ({"wsg_50": 40.0}, r"\{'wsg_50': 40\.0\}")]],
     (_same_file_by_another_path, [], r"runs0\.json: named twice \(as .*runs0\.json"),
     (_two_files, ["--alpha", "1.5"], r"--alpha 1\.5: expected a level between 0 and 1"),
 ])
