@@ -71,7 +71,7 @@ def _read(path: str, test: str) -> dict:
         if not isinstance(data.get(side), dict):
             raise EvaluationError(f"{path}: {side}: missing or not an object")
     a, b = data["a"], data["b"]
-    label = f"{a.get('row', '?')} -> {b.get('row', '?')}"
+    label = f"{side_label(a)} -> {side_label(b)}"
     if fmt == COMPARE_FORMAT:
         if a.get("row") == b.get("row"):
             label = f"{a.get('row', '?')}: {a.get('checkpoint')} -> {b.get('checkpoint')}"
@@ -85,7 +85,7 @@ def _read(path: str, test: str) -> dict:
             if budget is not None and not is_budget(budget):
                 raise EvaluationError(f"{path}: {tag}: calibration_scenes: expected null or gripper -> scenes "
                                       f"(positive integers), got {budget!r}")
-        label = f"{side_label(a)} -> {side_label(b)} (runs)"
+        label += " (runs)"
         record, key = data.get(test), f"{test}: p_value"
         if not isinstance(record, dict) or "p_value" not in record:
             raise EvaluationError(f"{path}: {test}: missing (a run comparison records 't' and 'randomization')")
