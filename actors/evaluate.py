@@ -626,18 +626,25 @@ def _cell(summary: dict) -> str:
     return f"{summary['objects_label']}/{summary['grippers_label']}"
 
 
+def _seeds(summary: dict) -> tuple[int, ...]:
+    """The scene seeds of a result: its ``--seed``, or each pooled file's (:func:`actors.compare.pool_result`)."""
+    seed = summary["seed"]
+    return tuple(seed) if isinstance(seed, list) else (seed,)
+
+
 def _column_key(summary: dict, with_cameras: bool, with_seeds: bool) -> tuple:
     cell = _cell(summary)
     order = CELL_ORDER.index(cell) if cell in CELL_ORDER else len(CELL_ORDER)
     cams = summary["cameras"] if with_cameras else None
-    seed = summary["seed"] if with_seeds else None
-    return (SCENE_KINDS.index(summary["scene"]), order, cell, cams, seed)
+    seeds = _seeds(summary) if with_seeds else None
+    return (SCENE_KINDS.index(summary["scene"]), order, cell, cams, seeds)
 
 
 def _column_title(key: tuple) -> str:
-    scene, _, cell, cams, seed = key
+    scene, _, cell, cams, seeds = key
     qualifiers = [f"{cams} cam{'s' if cams > 1 else ''}"] if cams is not None else []
-    qualifiers += [f"seed {seed}"] if seed is not None else []
+    if seeds is not None:
+        qualifiers += [f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}"]
     return f"{SCENE_KINDS[scene]} {cell}" + (f" ({', '.join(qualifiers)})" if qualifiers else "")
 
 
@@ -645,27 +652,66 @@ def _fmt(rate: float | None) -> str:
     return "n/a" if rate is None else f"{rate:.3f}"
 
 
-def table_markdown(results: list[tuple[str, dict]]) -> str:
+def _mean_rate(cell: list[tuple[str, dict]]) -> float | None:
+    """The rate of a table cell: its result's, or the mean over its training runs (n/a if one has none)."""
+    rates = [s["rate"] for _, s in cell]
+    return None if any(r is None for r in rates) else sum(rates) / len(rates)
+
+
+def _add_run(cell: list[tuple[str, dict]], path: str, s: dict, title: str, runs: bool) -> None:
+    """Add a result to a table cell that already holds ``cell``: another training run of the row
+    (``runs``: another model, on the same scenes), else a clash. One line naming the file and key."""
+    from actors.compare import model_difference  # imported here: actors.compare builds on this module
+
+    head, first = cell[0]
+    if not runs:
+        raise EvaluationError(f"{path}: policy {row_label(s)}, {title}: the same cell is already in {head} "
+                              "(--runs averages training runs of one row)")
+    if s.get("checkpoint_sha256") is None and s.get("checkpoint") is None:
+        raise EvaluationError(f"{path}: checkpoint: none ({s['policy']} is not a trained model; --runs averages "
+                              f"training runs), and {head} has policy {row_label(s)}, {title} too")
+    for other_path, other in cell:
+        if model_difference(s, other) is None:
+            raise EvaluationError(f"{path}: checkpoint: the same model as {other_path} in policy {row_label(s)}, "
+                                  f"{title} (--runs averages other training runs; pool one model's scene seeds "
+                                  "with A.json,B.json)")
+    for key in ("episodes", "seed"):
+        if s[key] != first[key]:
+            raise EvaluationError(f"{path}: {key}: {s[key]!r}, but {head} has {first[key]!r}: the runs of one "
+                                  "cell must be evaluated on the same scenes")
+    cell.append((path, s))
+
+
+def table_markdown(results: list[tuple[str, dict]], runs: bool = False) -> str:
     """Markdown of the paper's Table I layout: rows = policies, columns = scene kind x O x G (x
-    cameras when the results mix camera counts, x scene seed when they mix seeds), then the sources
-    and, for one result, its grippers."""
+    cameras when the results mix camera counts, x scene seeds when they mix seeds or pool several),
+    then the sources and, for one result of one file, its grippers. With ``runs``, results of one
+    row and cell from different models are training runs of that row: the cell is the mean of
+    their rates, and a table of the runs follows."""
     with_cameras = len({s["cameras"] for _, s in results}) > 1
-    with_seeds = len({s["seed"] for _, s in results}) > 1
-    cells: dict[tuple[str, tuple], tuple[str, dict]] = {}
+    seed_sets = {_seeds(s) for _, s in results}
+    with_seeds = len(seed_sets) > 1 or any(len(seeds) > 1 for seeds in seed_sets)
+    cells: dict[tuple[str, tuple], list[tuple[str, dict]]] = {}
     for path, s in results:
         key = (row_label(s), _column_key(s, with_cameras, with_seeds))
         if key in cells:
-            raise EvaluationError(
-                f"{path}: policy {key[0]}, {_column_title(key[1])}: the same cell is already in {cells[key][0]}"
-            )
-        cells[key] = (path, s)
+            _add_run(cells[key], path, s, _column_title(key[1]), runs)
+        else:
+            cells[key] = [(path, s)]
     columns = sorted({k for _, k in cells})
     rows = [p for p in ROWS if any(pol == p for pol, _ in cells)]
     lines = ["| policy | " + " | ".join(_column_title(c) for c in columns) + " |"]
     lines.append("|---|" + "---:|" * len(columns))
     for p in rows:
-        vals = [_fmt(cells[(p, c)][1]["rate"]) if (p, c) in cells else "–" for c in columns]
+        vals = [_fmt(_mean_rate(cells[(p, c)])) if (p, c) in cells else "–" for c in columns]
         lines.append(f"| {p} | " + " | ".join(vals) + " |")
+    several = {k: v for k, v in cells.items() if len(v) > 1}
+    if several:
+        lines += ["", "Cells of several training runs: the mean of the runs' rates (each run's rate over its scenes).",
+                  "", "| policy | column | runs | rate of each run | mean |", "|---|---|---:|---|---:|"]
+        for (p, c), cell in sorted(several.items(), key=lambda kv: (ROWS.index(kv[0][0]), kv[0][1])):
+            each = " / ".join(_fmt(s["rate"]) for _, s in cell)
+            lines.append(f"| {p} | {_column_title(c)} | {len(cell)} | {each} | {_fmt(_mean_rate(cell))} |")
     lines += [
         "",
         "Success rate = successes / attempts (one attempt = one grasp; success = exactly one target lifted "
@@ -678,10 +724,10 @@ def table_markdown(results: list[tuple[str, dict]]) -> str:
     for path, s in results:
         lines.append(
             f"| {path} | {row_label(s)} | {s['scene']} | {s['objects']} | {s['grippers']} | {s['cameras']} | "
-            f"{s['episodes']} | {s['average']['attempts']} | {s['average']['successes']} | {s['seed']} | "
-            f"{s.get('checkpoint') or '–'} |"
+            f"{s['episodes']} | {s['average']['attempts']} | {s['average']['successes']} | "
+            f"{', '.join(map(str, _seeds(s)))} | {s.get('checkpoint') or '–'} |"
         )
-    if len(results) == 1:
+    if len(results) == 1 and "pooled_from" not in results[0][1]:
         s = results[0][1]
         head = "chosen attempts" if s["policy"] == "adagrasp" else "attempts"
         lines += [
@@ -800,7 +846,12 @@ def _table_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="python -m launcher evaluate table", description="Merge evaluation results into the paper's Table I."
     )
-    ap.add_argument("results", nargs="+", help="result JSON files written by evaluate --json")
+    ap.add_argument("results", nargs="+",
+                    help="result JSON files written by evaluate --json; A.json,B.json,... is one model's results "
+                         "at other scene seeds, read as one result over all their scenes")
+    ap.add_argument("--runs", action="store_true",
+                    help="results of one row and cell from different models are training runs of that row: "
+                         "the cell shows the mean of their rates (they must share their scenes)")
     ap.add_argument("--md", default=None, help="write the Markdown here (default: print it)")
     return ap
 
@@ -834,7 +885,16 @@ def table(argv: list[str]) -> str:
     """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it."""
     args = _table_parser().parse_args(argv)
     check_output_path("--md", args.md)
-    markdown = table_markdown([(p, read_result(p)) for p in args.results])
+    from actors.compare import pool_result  # imported here: actors.compare builds on this module
+
+    results = []
+    for arg in args.results:
+        paths = arg.split(",")
+        if any(not p for p in paths):
+            raise EvaluationError(f"{arg}: expected RESULT.json or RESULT.json,RESULT.json,... "
+                                  "(one model's scene seeds)")
+        results.append((" + ".join(paths), pool_result(paths) if len(paths) > 1 else read_result(arg)))
+    markdown = table_markdown(results, runs=args.runs)
     if args.md:
         _write_atomic(args.md, markdown)
     else:
