@@ -231,47 +231,6 @@ def pool(sides: list[Side]) -> Side:
     )
 
 
-def pool_result(paths: list[str]) -> dict:
-    """One row's result over several scene seeds: the result files of one model at other
-    ``--seed`` values read as one result, for ``evaluate table``. Returns the first file's result
-    with ``rate`` the table's rate over every scene of every file (per-gripper policies: the mean
-    over the grippers of their pooled successes / attempts; ``adagrasp``: successes / attempts),
-    ``seed`` the list of the files' scene seeds, ``episodes`` and the ``average`` counts summed,
-    and ``pooled_from`` the paths. The files must pool as ``evaluate compare --also`` sides do
-    (:func:`pool`: one row, model, cameras and grippers, no scene twice); one line naming the file
-    and the key otherwise."""
-    assert len(paths) > 1, paths
-    sides = []
-    for path in paths:
-        summary = read_result(path)
-        episodes = _episodes(path, summary)
-        grippers = _grippers(path, episodes, None)
-        scenes = sorted({seed for _, seed in episodes})
-        for g in grippers:
-            lacking = [seed for seed in scenes if (g, seed) not in episodes]
-            if lacking:
-                raise EvaluationError(f"{path}: episode_results: gripper {g} has no record of scene_seed {lacking[0]}, "
-                                      "which other grippers ran")
-        sides.append(_side(path, summary, episodes, grippers, scenes, []))
-    side = pool(sides)
-    rate = float(table_rate(side, np.ones((1, len(side.scene_seeds))))[0])
-    parts = [s.summary for s in sides]
-    first = parts[0]
-    return {
-        **first,
-        "rate": rate,
-        "seed": sorted(s["seed"] for s in parts),
-        "episodes": sum(s["episodes"] for s in parts),
-        "average": {
-            **first["average"],
-            "rate": rate,
-            "attempts": int(side.attempts.sum()),
-            "successes": int(side.successes.sum()),
-        },
-        "pooled_from": list(paths),
-    }
-
-
 def _candidates(path: str, summary: dict) -> list[str]:
     """The ``gripper_names`` of a result: the grippers of its cell (``adagrasp``: its candidates)."""
     names = summary.get("gripper_names")

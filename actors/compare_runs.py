@@ -149,26 +149,126 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int
     Returns each side's calibration budget (:func:`_check_calibration_budget`)."""
     budgets = []
     first = sides[0][0][0]
-    grippers = sorted(_candidates(first.path, first.summary))
     for tag, runs in zip("AB", sides):
         head = runs[0][0]
         for rf in (f for run in runs for f in run):
-            for key in ("scene", "objects"):
-                if key not in rf.summary:
-                    raise EvaluationError(f"{rf.path}: {key}: missing")
-            for key in CELL_KEYS:
-                if rf.summary.get(key) != first.summary.get(key):
-                    raise EvaluationError(f"{rf.path}: {key}: {rf.summary.get(key)!r}, but {first.path} has "
-                                          f"{first.summary.get(key)!r}: not one cell")
-            mine = sorted(_candidates(rf.path, rf.summary))
-            if mine != grippers:
-                raise EvaluationError(f"{rf.path}: gripper_names: {mine}, but {first.path} has {grippers}: "
-                                      "not one cell")
+            check_one_cell(rf.path, rf.summary, first.path, first.summary)
             if row_label(rf.summary) != row_label(head.summary):
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")
         budgets.append(_check_calibration_budget(tag, [f for run in runs for f in run]))
     return budgets
+
+
+def check_one_cell(path: str, summary: dict, first_path: str, first: dict) -> None:
+    """The result ``summary`` (file ``path``) is of the cell of ``first``: the same
+    :data:`CELL_KEYS` and gripper names. One line naming the file and the key otherwise."""
+    for key in ("scene", "objects"):
+        if key not in summary:
+            raise EvaluationError(f"{path}: {key}: missing")
+    for key in CELL_KEYS:
+        if summary.get(key) != first.get(key):
+            raise EvaluationError(f"{path}: {key}: {summary.get(key)!r}, but {first_path} has {first.get(key)!r}: "
+                                  "not one cell")
+    mine, grippers = sorted(_candidates(path, summary)), sorted(_candidates(first_path, first))
+    if mine != grippers:
+        raise EvaluationError(f"{path}: gripper_names: {mine}, but {first_path} has {grippers}: not one cell")
+
+
+def _check_sim(path: str, summary: dict, first_path: str, first: dict) -> None:
+    """The two results were simulated alike (the same ``config.sim``). One line naming the keys otherwise."""
+    mine, theirs = (s.get("config", {}).get("sim") for s in (summary, first))
+    if mine != theirs:
+        differ = sorted(k for k in (mine or {}).keys() | (theirs or {}).keys()
+                        if (mine or {}).get(k) != (theirs or {}).get(k))
+        raise EvaluationError(f"{path}: config.sim: differs from {first_path} in {', '.join(differ) or 'presence'}: "
+                              "not simulated alike")
+
+
+def _scene_set(path: str, summary: dict) -> list[int]:
+    """The sorted scene seeds of a result's episode records; one line naming the file without them."""
+    records = summary.get("episode_results")
+    if not isinstance(records, list) or not records or not all(isinstance(r, dict) and "scene_seed" in r for r in records):
+        raise EvaluationError(f"{path}: episode_results: missing, empty or without scene_seed (a result written by "
+                              "evaluate --json)")
+    return sorted({r["scene_seed"] for r in records})
+
+
+def pool_result(paths: list[str]) -> dict:
+    """One row's result over several scene seeds: the result files of one model at other
+    ``--seed`` values read as one result, for ``evaluate table``. Returns the first file's result
+    with ``rate`` the table's rate over every scene of every file (per-gripper policies: the mean
+    over the grippers of their pooled successes / attempts; ``adagrasp``: successes / attempts),
+    ``seed`` the sorted list of the files' scene seeds, ``scene_seeds`` and ``episode_results``
+    joined, ``episodes`` and the ``average`` counts summed, ``pooled_from`` the paths, and no
+    ``per_gripper``. The files must be one cell measured alike (:func:`check_one_cell`, the same
+    ``grippers_label`` and ``config.sim``) and pool as ``evaluate compare --also`` sides do
+    (:func:`actors.compare.pool`: one row, model and cameras, no scene twice); one line naming the
+    file and the key otherwise."""
+    assert len(paths) > 1, paths
+    if len(set(paths)) < len(paths):
+        twice = next(p for p in paths if paths.count(p) > 1)
+        raise EvaluationError(f"{twice}: given twice in {','.join(paths)}")
+    sides = []
+    for path in paths:
+        summary = read_result(path)
+        if sides:
+            first = sides[0]
+            check_one_cell(path, summary, first.path, first.summary)
+            _check_sim(path, summary, first.path, first.summary)
+            if summary["grippers_label"] != first.summary["grippers_label"]:
+                raise EvaluationError(f"{path}: grippers_label: {summary['grippers_label']!r}, but {first.path} has "
+                                      f"{first.summary['grippers_label']!r}: not one cell")
+        episodes = _episodes(path, summary)
+        grippers = _grippers(path, episodes, None)
+        scenes = sorted({seed for _, seed in episodes})
+        for g in grippers:
+            lacking = [seed for seed in scenes if (g, seed) not in episodes]
+            if lacking:
+                raise EvaluationError(f"{path}: episode_results: gripper {g} has no record of scene_seed {lacking[0]}, "
+                                      "which other grippers ran")
+        sides.append(_side(path, summary, episodes, grippers, scenes, []))
+    side = pool(sides)
+    rate = float(table_rate(side, np.ones((1, len(side.scene_seeds))))[0])
+    parts = [s.summary for s in sides]
+    first = parts[0]
+    successes, attempts = int(side.successes.sum()), int(side.attempts.sum())
+    pooled = {key: value for key, value in first.items() if key != "per_gripper"}
+    return {
+        **pooled,
+        "rate": rate,
+        "seed": sorted(s["seed"] for s in parts),
+        "scene_seeds": [seed for s in parts for seed in s.get("scene_seeds", [])],
+        "episode_results": [r for s in parts for r in s["episode_results"]],
+        "episodes": sum(s["episodes"] for s in parts),
+        "average": {**first["average"], "rate": rate, "attempts": attempts, "successes": successes,
+                    "pooled_rate": successes / attempts},
+        "pooled_from": list(paths),
+    }
+
+
+def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, dict]]) -> None:
+    """``evaluate table --runs``: ``summary`` (file ``path``) may join the table cell ``title``,
+    which holds ``cell`` (path, result) already, as another training run of its row: a trained
+    model (:func:`_check_trained`) other than each run there (:func:`model_difference`; without
+    ``checkpoint_sha256`` in both, the checkpoint name tells them apart), of the cell of the first
+    (:func:`check_one_cell`), simulated alike, on the same scenes, and, for calibrated runs that
+    record it, calibrated from as many scenes per gripper. One line naming the file and key otherwise."""
+    head, first = cell[0]
+    _check_trained(RunFile(path, summary, {}))
+    for other_path, other in cell:
+        if model_difference(summary, other) is None:
+            raise EvaluationError(f"{path}: checkpoint: the model of {other_path}, in {row_label(summary)}, {title} "
+                                  "too (--runs averages other training runs of a row)")
+    check_one_cell(path, summary, head, first)
+    _check_sim(path, summary, head, first)
+    if _scene_set(path, summary) != _scene_set(head, first):
+        raise EvaluationError(f"{path}: scene_seed: its scenes are not those of {head}: the runs of one cell must be "
+                              "evaluated on the same scenes")
+    mine, theirs = calibration_budget(summary), calibration_budget(first)
+    if mine is not None and theirs is not None and mine != theirs:
+        raise EvaluationError(f"{path}: calibration: from {_budget_text(mine)}, but {head} from {_budget_text(theirs)} "
+                              "(another calibration budget is another method, not another run)")
 
 
 def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:

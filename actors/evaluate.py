@@ -659,26 +659,15 @@ def _mean_rate(cell: list[tuple[str, dict]]) -> float | None:
 
 
 def _add_run(cell: list[tuple[str, dict]], path: str, s: dict, title: str, runs: bool) -> None:
-    """Add a result to a table cell that already holds ``cell``: another training run of the row
-    (``runs``: another model, on the same scenes), else a clash. One line naming the file and key."""
-    from actors.compare import model_difference  # imported here: actors.compare builds on this module
+    """Add a result to a table cell that already holds ``cell``: with ``runs``, another training run
+    of the row (:func:`actors.compare_runs.check_table_run`), else a clash. One line naming the file
+    and key."""
+    from actors.compare_runs import check_table_run  # imported here: actors.compare_runs builds on this module
 
-    head, first = cell[0]
     if not runs:
-        raise EvaluationError(f"{path}: policy {row_label(s)}, {title}: the same cell is already in {head} "
+        raise EvaluationError(f"{path}: policy {row_label(s)}, {title}: the same cell is already in {cell[0][0]} "
                               "(--runs averages training runs of one row)")
-    if s.get("checkpoint_sha256") is None and s.get("checkpoint") is None:
-        raise EvaluationError(f"{path}: checkpoint: none ({s['policy']} is not a trained model; --runs averages "
-                              f"training runs), and {head} has policy {row_label(s)}, {title} too")
-    for other_path, other in cell:
-        if model_difference(s, other) is None:
-            raise EvaluationError(f"{path}: checkpoint: the same model as {other_path} in policy {row_label(s)}, "
-                                  f"{title} (--runs averages other training runs; pool one model's scene seeds "
-                                  "with A.json,B.json)")
-    for key in ("episodes", "seed"):
-        if s[key] != first[key]:
-            raise EvaluationError(f"{path}: {key}: {s[key]!r}, but {head} has {first[key]!r}: the runs of one "
-                                  "cell must be evaluated on the same scenes")
+    check_table_run(path, s, title, cell)
     cell.append((path, s))
 
 
@@ -885,7 +874,7 @@ def table(argv: list[str]) -> str:
     """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it."""
     args = _table_parser().parse_args(argv)
     check_output_path("--md", args.md)
-    from actors.compare import pool_result  # imported here: actors.compare builds on this module
+    from actors.compare_runs import pool_result  # imported here: actors.compare_runs builds on this module
 
     results = []
     for arg in args.results:

@@ -100,11 +100,12 @@ def test_table_errors_are_one_line_naming_the_file_and_key(tmp_path, capsys):
     gap = write(tmp_path, "gap", lopsided)
     md = tmp_path / "never.md"
     cases = (
-        (["--runs", whole, again], f"{again}: checkpoint: the same model as {whole}"),
+        (["--runs", whole, again], f"{again}: checkpoint: the model of {whole}, in fix-gripper, obstacle O_te/G_te"),
         ([parts[0] + "," + other[1]], f"{other[1]}: checkpoint_sha256: bbbbbbbbbbbb..., but {parts[0]} has"),
         ([parts[0] + "," + whole], f"{whole}: scene_seed {SEEDS[0]}: also in {parts[0]}"),
-        (["--runs", whole, fewer], f"{fewer}: episodes: 4, but {whole} has 5"),
+        (["--runs", whole, fewer], f"{fewer}: scene_seed: its scenes are not those of {whole}"),
         (["--runs", *heuristic], f"{heuristic[1]}: checkpoint: none (heuristic is not a trained model"),
+        ([parts[0] + "," + parts[0]], f"{parts[0]}: given twice in"),
         ([parts[0] + ","], f"{parts[0]},: expected RESULT.json or RESULT.json,RESULT.json"),
         ([gap + "," + parts[0]], f"{gap}: episode_results: gripper panda_hand has no record of scene_seed {SEEDS[1]}"),
     )
@@ -114,3 +115,52 @@ def test_table_errors_are_one_line_naming_the_file_and_key(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and needle in err, (needle, err)
         assert not md.exists()
+
+
+def test_only_one_cell_measured_alike_pools_or_averages(tmp_path, capsys):
+    """Results of other grippers, attempt limits, simulator settings, scene splits or calibration
+    budgets are neither pooled into one result nor averaged as runs: one line naming the file and key."""
+    rng = np.random.default_rng(7)
+    t = random_table(rng, len(SEEDS))
+    ada = random_table(rng, len(SEEDS), "adagrasp")
+
+    def file(name, policy, table, seeds, model, seed=0, **fields):
+        data = {**result(policy, table, seeds), "checkpoint": model, "checkpoint_sha256": model[-1] * 64,
+                "seed": seed, "config": {"sim": {"solver_iterations": 300}}, **fields}
+        return write(tmp_path, name, data)
+
+    base = file("base", "fix-gripper", t, SEEDS, "model:a")
+    g_tr = file("g_tr", "adagrasp", ada[2:], SEEDS[2:], "model:a", seed=2,
+                gripper_names=["gen_a", "gen_b"], grippers="train", grippers_label="G_tr")
+    ada0 = file("ada0", "adagrasp", ada[:2], SEEDS[:2], "model:a")
+    attempts = file("attempts", "fix-gripper", t, SEEDS, "model:b", max_attempts=5)
+    sim = file("sim", "fix-gripper", t, SEEDS, "model:c", config={"sim": {"solver_iterations": 50}})
+    split_a = [file("sa0", "fix-gripper", {g: c[:3] for g, c in t.items()}, SEEDS[:3], "model:d"),
+               file("sa2", "fix-gripper", {g: c[3:] for g, c in t.items()}, SEEDS[3:], "model:d", seed=2)]
+    other_seeds = [11, 12, 13, 99, 98]
+    split_b = [file("sb0", "fix-gripper", {g: c[:3] for g, c in t.items()}, other_seeds[:3], "model:e"),
+               file("sb2", "fix-gripper", {g: c[3:] for g, c in t.items()}, other_seeds[3:], "model:e", seed=2)]
+
+    def calibrated(name, model, scenes):
+        fits = {g: {"scenes": scenes} for g in ("wsg_50", "panda_hand")}
+        return file(name, "adagrasp", ada, SEEDS, model, calibration={"source": f"{name}-fit.json", "grippers": fits})
+
+    cal10, cal40 = calibrated("cal10", "model:f", 10), calibrated("cal40", "model:g", 40)
+    md = tmp_path / "never.md"
+    cases = (
+        ([ada0 + "," + g_tr], f"{g_tr}: gripper_names: ['gen_a', 'gen_b'], but {ada0} has"),
+        (["--runs", base, attempts], f"{attempts}: max_attempts: 5, but {base} has"),
+        (["--runs", base, sim], f"{sim}: config.sim: differs from {base} in solver_iterations"),
+        (["--runs", ",".join(split_a), ",".join(split_b)],
+         f"{split_b[0]} + {split_b[1]}: scene_seed: its scenes are not those of {split_a[0]} + {split_a[1]}"),
+        (["--runs", cal10, cal40], f"{cal40}: calibration: from 40 scenes per gripper, but {cal10} from 10 scenes"),
+    )
+    for argv, needle in cases:
+        capsys.readouterr()
+        assert ev.cli(["table", *argv, "--md", str(md)]) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and needle in err, (needle, err)
+        assert not md.exists()
+    fine = ev.table(["--runs", cal40, calibrated("cal40b", "model:h", 40)])
+    assert "| adagrasp (calibrated) | obstacle O_te/G_te (seed 0) | 2 |" not in fine, "one seed: no seed qualifier"
+    assert "| adagrasp (calibrated) | obstacle O_te/G_te | 2 |" in fine
