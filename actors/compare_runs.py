@@ -21,16 +21,16 @@ seeds, and tests the difference of the mean over runs against the spread across 
   runs bound the smallest p-value it can give (``smallest_p``): 0.1 with three runs a side, 0.25
   with three pairs. A p-value at that bound means "as extreme as these runs allow".
 
-Both tests hold the scenes fixed: they say whether the difference exceeds the spread across
-training runs *on these scenes*; ``evaluate compare`` speaks to other scenes for one model. The
-files must be results of one cell (:data:`CELL_KEYS` and the gripper names), each side one row,
-each run of a side another model (``checkpoint_sha256``, else the checkpoint name), no model on
-both sides unless paired, and the files of one run one model on different scene seeds (as
-``evaluate compare --also``). A per-gripper file must have records of every gripper of the cell
-(or of ``--gripper``). The runs of a calibrated side must be calibrated from as many scenes per
-gripper, where their results record it (:func:`calibration_budget`). A scene whose objects differ
-between two compared records stops the comparison with one line naming the file, unless
-``--drop-mismatched-scenes`` leaves it out.
+Both tests hold the scenes fixed: they say whether the difference exceeds the spread across training
+runs *on these scenes*; ``evaluate compare`` speaks to other scenes for one model. The files must be
+results of one cell (:data:`CELL_KEYS` and the gripper names) simulated alike (the same
+``config.sim``), each side one row, each run of a side another model (``checkpoint_sha256``, else
+the checkpoint name), no model on both sides unless paired, and the files of one run one model on
+different scene seeds (as ``evaluate compare --also``). A per-gripper file must have records of
+every gripper of the cell (or of ``--gripper``). The runs of a calibrated side must be calibrated
+from as many scenes per gripper, where their results record it (:func:`calibration_budget`). A scene
+whose objects differ between two compared records stops the comparison with one line naming the
+file, unless ``--drop-mismatched-scenes`` leaves it out.
 """
 
 from __future__ import annotations
@@ -145,7 +145,8 @@ def _check_calibration_budget(tag: str, files: list[RunFile]) -> dict[str, int] 
 
 
 def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int] | None]:
-    """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names) and its side's row.
+    """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names), its ``config.sim``
+    and its side's row.
     Returns each side's calibration budget (:func:`_check_calibration_budget`)."""
     budgets = []
     first = sides[0][0][0]
@@ -153,6 +154,7 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int
         head = runs[0][0]
         for rf in (f for run in runs for f in run):
             check_one_cell(rf.path, rf.summary, first.path, first.summary)
+            _check_sim(rf.path, rf.summary, first.path, first.summary)
             if row_label(rf.summary) != row_label(head.summary):
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")

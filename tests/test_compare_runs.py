@@ -238,6 +238,14 @@ def _other_cameras(tmp_path, rng):
     return make_runs(tmp_path, "a", "fix-gripper", 2, rng), b
 
 
+def _other_simulator(tmp_path, rng):
+    """A run evaluated with other solver settings: another measurement, not another run."""
+    b = make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    data = json.load(open(b[1][0]))
+    json.dump({**data, "config": {"sim": {"solver_iterations": 50}}}, open(b[1][0], "w"))
+    return make_runs(tmp_path, "a", "fix-gripper", 2, rng), b
+
+
 def _one_model_on_both_sides(tmp_path, rng):
     a = make_runs(tmp_path, "a", "fix-gripper", 2, rng)
     return a, make_runs(tmp_path, "b", "adagrasp", 2, rng, models=["model:a0", "model:b1"])
@@ -285,6 +293,8 @@ def _two_calibration_budgets(tmp_path, rng):
     (_run_of_two_models, [], r"a0x\.json: checkpoint: 'model:other', but .*a0\.json has 'model:a0', of the same run"),
     (_a_scene_twice_in_a_run, [], r"a0\.json: scene_seed 11: also in .*a0\.json of the same run"),
     (_other_cameras, [], r"b1\.json: cameras: 2, but .*a0\.json has 1: not one cell"),
+    (_other_simulator, [], r"b1\.json: config\.sim: differs from .*a0\.json in solver_iterations: not "
+                           r"simulated alike"),
     (_one_model_on_both_sides, [], r"b0\.json: checkpoint: the model of .*a0\.json on side A: two rows of one "
                                    r"model compare with --paired"),
     (_digest_on_one_file_only, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
