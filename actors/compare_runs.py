@@ -179,7 +179,7 @@ def check_one_cell(path: str, summary: dict, first_path: str, first: dict) -> No
 
 def _check_sim(path: str, summary: dict, first_path: str, first: dict) -> None:
     """The two results were simulated alike (the same ``config.sim``). One line naming the keys otherwise."""
-    mine, theirs = (s.get("config", {}).get("sim") for s in (summary, first))
+    mine, theirs = ((s.get("config") or {}).get("sim") for s in (summary, first))
     if mine != theirs:
         differ = sorted(k for k in (mine or {}).keys() | (theirs or {}).keys()
                         if (mine or {}).get(k) != (theirs or {}).get(k))
@@ -190,7 +190,8 @@ def _check_sim(path: str, summary: dict, first_path: str, first: dict) -> None:
 def _scene_set(path: str, summary: dict) -> list[int]:
     """The sorted scene seeds of a result's episode records; one line naming the file without them."""
     records = summary.get("episode_results")
-    if not isinstance(records, list) or not records or not all(isinstance(r, dict) and "scene_seed" in r for r in records):
+    if not isinstance(records, list) or not records or not all(
+            isinstance(r, dict) and "scene_seed" in r for r in records):
         raise EvaluationError(f"{path}: episode_results: missing, empty or without scene_seed (a result written by "
                               "evaluate --json)")
     return sorted({r["scene_seed"] for r in records})
@@ -267,10 +268,13 @@ def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, 
     if _scene_set(path, summary) != _scene_set(head, first):
         raise EvaluationError(f"{path}: scene_seed: its scenes are not those of {head}: the runs of one cell must be "
                               "evaluated on the same scenes")
-    mine, theirs = calibration_budget(summary), calibration_budget(first)
-    if mine is not None and theirs is not None and mine != theirs:
-        raise EvaluationError(f"{path}: calibration: from {_budget_text(mine)}, but {head} from {_budget_text(theirs)} "
-                              "(another calibration budget is another method, not another run)")
+    mine = calibration_budget(summary)
+    for other_path, other in cell:
+        theirs = calibration_budget(other)
+        if mine is not None and theirs is not None and mine != theirs:
+            raise EvaluationError(f"{path}: calibration: from {_budget_text(mine)}, but {other_path} from "
+                                  f"{_budget_text(theirs)} (another calibration budget is another method, "
+                                  "not another run)")
 
 
 def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:

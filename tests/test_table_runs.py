@@ -142,10 +142,11 @@ def test_only_one_cell_measured_alike_pools_or_averages(tmp_path, capsys):
                file("sb2", "fix-gripper", {g: c[3:] for g, c in t.items()}, other_seeds[3:], "model:e", seed=2)]
 
     def calibrated(name, model, scenes):
-        fits = {g: {"scenes": scenes} for g in ("wsg_50", "panda_hand")}
+        fits = {g: {"scenes": scenes} if scenes else {"trials": 12} for g in ("wsg_50", "panda_hand")}
         return file(name, "adagrasp", ada, SEEDS, model, calibration={"source": f"{name}-fit.json", "grippers": fits})
 
     cal10, cal40 = calibrated("cal10", "model:f", 10), calibrated("cal40", "model:g", 40)
+    unrecorded = calibrated("unrecorded", "model:i", None)  # written before the budget was recorded
     md = tmp_path / "never.md"
     cases = (
         ([ada0 + "," + g_tr], f"{g_tr}: gripper_names: ['gen_a', 'gen_b'], but {ada0} has"),
@@ -154,6 +155,7 @@ def test_only_one_cell_measured_alike_pools_or_averages(tmp_path, capsys):
         (["--runs", ",".join(split_a), ",".join(split_b)],
          f"{split_b[0]} + {split_b[1]}: scene_seed: its scenes are not those of {split_a[0]} + {split_a[1]}"),
         (["--runs", cal10, cal40], f"{cal40}: calibration: from 40 scenes per gripper, but {cal10} from 10 scenes"),
+        (["--runs", unrecorded, cal10, cal40], f"{cal40}: calibration: from 40 scenes per gripper, but {cal10} from"),
     )
     for argv, needle in cases:
         capsys.readouterr()
