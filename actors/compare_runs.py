@@ -253,12 +253,14 @@ def pool_result(paths: list[str]) -> dict:
 def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, dict]]) -> None:
     """``evaluate table --runs``: ``summary`` (file ``path``) may join the table cell ``title``,
     which holds ``cell`` (path, result) already, as another training run of its row: a trained
-    model (:func:`_check_trained`) other than each run there (:func:`model_difference`; without
-    ``checkpoint_sha256`` in both, the checkpoint name tells them apart), of the cell of the first
-    (:func:`check_one_cell`), simulated alike, on the same scenes, and, for calibrated runs that
-    record it, calibrated from as many scenes per gripper. One line naming the file and key otherwise."""
+    model other than each run there (:func:`model_difference`; without ``checkpoint_sha256`` in
+    both, the checkpoint name tells them apart), of the cell of the first (:func:`check_one_cell`),
+    simulated alike, on the same scenes, and, for calibrated runs that record it, calibrated from as
+    many scenes per gripper. One line naming the file and key otherwise."""
     head, first = cell[0]
-    _check_trained(RunFile(path, summary, {}))
+    if summary.get("checkpoint_sha256") is None and summary.get("checkpoint") is None:
+        raise EvaluationError(f"{path}: checkpoint: none ({summary.get('policy')} is not a trained model; --runs "
+                              "averages training runs)")
     for other_path, other in cell:
         if model_difference(summary, other) is None:
             raise EvaluationError(f"{path}: checkpoint: the model of {other_path}, in {row_label(summary)}, {title} "
