@@ -38,6 +38,16 @@ def cells(markdown):
     return out
 
 
+def assert_one_line_errors(cases, md, capsys):
+    """Each (argv, needle): ``evaluate table`` exits 2 with one line holding needle, writing no ``md``."""
+    for argv, needle in cases:
+        capsys.readouterr()
+        assert ev.cli(["table", *argv, "--md", str(md)]) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and needle in err, (needle, err)
+        assert not md.exists()
+
+
 @pytest.mark.parametrize("policy", ["fix-gripper", "adagrasp"])
 def test_pooled_scene_seeds_have_the_rate_of_one_file_of_all_their_scenes(tmp_path, policy):
     rng = np.random.default_rng(3)
@@ -109,12 +119,7 @@ def test_table_errors_are_one_line_naming_the_file_and_key(tmp_path, capsys):
         ([parts[0] + ","], f"{parts[0]},: expected RESULT.json or RESULT.json,RESULT.json"),
         ([gap + "," + parts[0]], f"{gap}: episode_results: gripper panda_hand has no record of scene_seed {SEEDS[1]}"),
     )
-    for argv, needle in cases:
-        capsys.readouterr()
-        assert ev.cli(["table", *argv, "--md", str(md)]) == 2, argv
-        err = capsys.readouterr().err.strip()
-        assert "\n" not in err and needle in err, (needle, err)
-        assert not md.exists()
+    assert_one_line_errors(cases, md, capsys)
 
 
 def test_only_one_cell_measured_alike_pools_or_averages(tmp_path, capsys):
@@ -157,12 +162,7 @@ def test_only_one_cell_measured_alike_pools_or_averages(tmp_path, capsys):
         (["--runs", cal10, cal40], f"{cal40}: calibration: from 40 scenes per gripper, but {cal10} from 10 scenes"),
         (["--runs", unrecorded, cal10, cal40], f"{cal40}: calibration: from 40 scenes per gripper, but {cal10} from"),
     )
-    for argv, needle in cases:
-        capsys.readouterr()
-        assert ev.cli(["table", *argv, "--md", str(md)]) == 2, argv
-        err = capsys.readouterr().err.strip()
-        assert "\n" not in err and needle in err, (needle, err)
-        assert not md.exists()
+    assert_one_line_errors(cases, md, capsys)
     fine = ev.table(["--runs", cal40, calibrated("cal40b", "model:h", 40)])
     assert "| adagrasp (calibrated) | obstacle O_te/G_te (seed 0) | 2 |" not in fine, "one seed: no seed qualifier"
     assert "| adagrasp (calibrated) | obstacle O_te/G_te | 2 |" in fine
