@@ -78,11 +78,11 @@ CELL_KEYS = ("scene", "objects", "cameras", "scale", "max_attempts", "openings")
 """Result keys every file of both sides shares: one cell, measured one way."""
 
 
-def _check_trained(rf: RunFile) -> None:
-    """One line for a result without a checkpoint (``random``, ``heuristic``: nothing was trained)."""
-    if rf.summary.get("checkpoint_sha256") is None and rf.summary.get("checkpoint") is None:
-        raise EvaluationError(f"{rf.path}: checkpoint: none ({rf.summary.get('policy')} is not a trained model; "
-                              "runs compares training runs)")
+def _check_trained(path: str, summary: dict, needs: str) -> None:
+    """One line for a result without a checkpoint (``random``, ``heuristic``: nothing was trained);
+    ``needs`` says which command needs training runs."""
+    if summary.get("checkpoint_sha256") is None and summary.get("checkpoint") is None:
+        raise EvaluationError(f"{path}: checkpoint: none ({summary.get('policy')} is not a trained model; {needs})")
 
 
 def _models_line(key: str, rf: RunFile, other: RunFile) -> str:
@@ -145,8 +145,7 @@ def _check_calibration_budget(tag: str, files: list[RunFile]) -> dict[str, int] 
 
 
 def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int] | None]:
-    """Every file: the first file's cell (:data:`CELL_KEYS` and its gripper names), its ``config.sim``
-    and its side's row.
+    """Every file: the first file's cell (:func:`check_one_cell`) and its side's row.
     Returns each side's calibration budget (:func:`_check_calibration_budget`)."""
     budgets = []
     first = sides[0][0][0]
@@ -154,7 +153,6 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int
         head = runs[0][0]
         for rf in (f for run in runs for f in run):
             check_one_cell(rf.path, rf.summary, first.path, first.summary)
-            _check_sim(rf.path, rf.summary, first.path, first.summary)
             if row_label(rf.summary) != row_label(head.summary):
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")
@@ -163,8 +161,9 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int
 
 
 def check_one_cell(path: str, summary: dict, first_path: str, first: dict) -> None:
-    """The result ``summary`` (file ``path``) is of the cell of ``first``: the same
-    :data:`CELL_KEYS` and gripper names. One line naming the file and the key otherwise."""
+    """The result ``summary`` (file ``path``) is of the cell of ``first`` and measured alike: the
+    same :data:`CELL_KEYS`, gripper names and ``config.sim`` (:func:`_check_sim`). One line naming
+    the file and the key otherwise."""
     for key in ("scene", "objects"):
         if key not in summary:
             raise EvaluationError(f"{path}: {key}: missing")
@@ -175,6 +174,7 @@ def check_one_cell(path: str, summary: dict, first_path: str, first: dict) -> No
     mine, grippers = sorted(_candidates(path, summary)), sorted(_candidates(first_path, first))
     if mine != grippers:
         raise EvaluationError(f"{path}: gripper_names: {mine}, but {first_path} has {grippers}: not one cell")
+    _check_sim(path, summary, first_path, first)
 
 
 def _check_sim(path: str, summary: dict, first_path: str, first: dict) -> None:
@@ -188,13 +188,8 @@ def _check_sim(path: str, summary: dict, first_path: str, first: dict) -> None:
 
 
 def _scene_set(path: str, summary: dict) -> list[int]:
-    """The sorted scene seeds of a result's episode records; one line naming the file without them."""
-    records = summary.get("episode_results")
-    if not isinstance(records, list) or not records or not all(
-            isinstance(r, dict) and "scene_seed" in r for r in records):
-        raise EvaluationError(f"{path}: episode_results: missing, empty or without scene_seed (a result written by "
-                              "evaluate --json)")
-    return sorted({r["scene_seed"] for r in records})
+    """The sorted scene seeds of a result's episode records (read by :func:`actors.compare._episodes`)."""
+    return sorted({seed for _, seed in _episodes(path, summary)})
 
 
 def pool_result(paths: list[str]) -> dict:
@@ -204,8 +199,8 @@ def pool_result(paths: list[str]) -> dict:
     over the grippers of their pooled successes / attempts; ``adagrasp``: successes / attempts),
     ``seed`` the sorted list of the files' scene seeds, ``scene_seeds`` and ``episode_results``
     joined, ``episodes`` and the ``average`` counts summed, ``pooled_from`` the paths, and no
-    ``per_gripper``. The files must be one cell measured alike (:func:`check_one_cell`, the same
-    ``grippers_label`` and ``config.sim``) and pool as ``evaluate compare --also`` sides do
+    ``per_gripper``. The files must be one cell measured alike (:func:`check_one_cell` and the same
+    ``grippers_label``) and pool as ``evaluate compare --also`` sides do
     (:func:`actors.compare.pool`: one row, model and cameras, no scene twice); one line naming the
     file and the key otherwise."""
     assert len(paths) > 1, paths
@@ -216,12 +211,11 @@ def pool_result(paths: list[str]) -> dict:
     for path in paths:
         summary = read_result(path)
         if sides:
-            first = sides[0]
-            check_one_cell(path, summary, first.path, first.summary)
-            _check_sim(path, summary, first.path, first.summary)
-            if summary["grippers_label"] != first.summary["grippers_label"]:
-                raise EvaluationError(f"{path}: grippers_label: {summary['grippers_label']!r}, but {first.path} has "
-                                      f"{first.summary['grippers_label']!r}: not one cell")
+            head = sides[0]
+            check_one_cell(path, summary, head.path, head.summary)
+            if summary["grippers_label"] != head.summary["grippers_label"]:
+                raise EvaluationError(f"{path}: grippers_label: {summary['grippers_label']!r}, but {head.path} has "
+                                      f"{head.summary['grippers_label']!r}: not one cell")
         episodes = _episodes(path, summary)
         grippers = _grippers(path, episodes, None)
         scenes = sorted({seed for _, seed in episodes})
@@ -258,15 +252,12 @@ def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, 
     simulated alike, on the same scenes, and, for calibrated runs that record it, calibrated from as
     many scenes per gripper. One line naming the file and key otherwise."""
     head, first = cell[0]
-    if summary.get("checkpoint_sha256") is None and summary.get("checkpoint") is None:
-        raise EvaluationError(f"{path}: checkpoint: none ({summary.get('policy')} is not a trained model; --runs "
-                              "averages training runs)")
+    _check_trained(path, summary, "--runs averages training runs")
     for other_path, other in cell:
         if model_difference(summary, other) is None:
             raise EvaluationError(f"{path}: checkpoint: the model of {other_path}, in {row_label(summary)}, {title} "
                                   "too (--runs averages other training runs of a row)")
     check_one_cell(path, summary, head, first)
-    _check_sim(path, summary, head, first)
     if _scene_set(path, summary) != _scene_set(head, first):
         raise EvaluationError(f"{path}: scene_seed: its scenes are not those of {head}: the runs of one cell must be "
                               "evaluated on the same scenes")
@@ -285,7 +276,7 @@ def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:
     for tag, runs in zip("AB", sides):
         for i, run in enumerate(runs):
             for rf in run:
-                _check_trained(rf)
+                _check_trained(rf.path, rf.summary, "runs compares training runs")
                 key = model_difference(rf.summary, run[0].summary)
                 if key:
                     raise EvaluationError(f"{_models_line(key, rf, run[0])}, of the same run (a run's files are "
