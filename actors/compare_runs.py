@@ -28,17 +28,20 @@ results of one cell (:data:`CELL_KEYS` and the gripper names) simulated alike (t
 the checkpoint name), no model on both sides unless paired, and the files of one run one model on
 different scene seeds (as ``evaluate compare --also``). A per-gripper file must have records of
 every gripper of the cell (or of ``--gripper``). The runs of a calibrated side must be calibrated
-from as many scenes per gripper, where their results record it (:func:`calibration_budget`). A scene
-whose objects differ between two compared records stops the comparison with one line naming the
-file, unless ``--drop-mismatched-scenes`` leaves it out.
+from as many scenes per gripper, where their results record it or their calibration's source file
+gives it (:func:`calibration_budget`). A scene whose objects differ between two compared records
+stops the comparison with one line naming the file, unless ``--drop-mismatched-scenes`` leaves it
+out.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import itertools
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy import stats
@@ -55,6 +58,7 @@ from actors.compare import (
     table_rate,
 )
 from actors.evaluate import EvaluationError, check_output_path, read_result, row_label, write_json
+from common.calibration import Calibration, calibration_from_result
 
 RUNS_FORMAT = "adagrasp-scale-run-comparison/1"
 """Value of the ``format`` key of a run comparison JSON."""
@@ -102,16 +106,80 @@ def _read_side(tag: str, groups: list[list[str]]) -> list[list[RunFile]]:
     return runs
 
 
-def calibration_budget(summary: dict) -> dict[str, int] | None:
+def calibration_budget(summary: dict, path: str | None = None) -> dict[str, int] | None:
     """Gripper name -> the scenes its calibration trials came from, for a calibrated result that
-    records them for every gripper; None otherwise (no calibration, or results written before the
-    scene count was recorded: their ``trials`` count grasps, several per scene of a pile)."""
+    records them for every gripper. A result written before the scene count was recorded (no
+    gripper's fit has ``scenes``; their ``trials`` count grasps, several per scene of a pile) gets
+    it from its calibration's source file, found and checked by :func:`_budget_from_source`, when
+    ``path`` (the result's file) is given. None otherwise: no calibration, or the count is unknown."""
     calibration = summary.get("calibration")
     fits = calibration.get("grippers") if isinstance(calibration, dict) else None
     if not isinstance(fits, dict) or not fits:
         return None
     budget = {g: fit.get("scenes") if isinstance(fit, dict) else None for g, fit in sorted(fits.items())}
-    return budget if is_budget(budget) else None
+    if is_budget(budget):
+        return budget
+    legacy = all(isinstance(fit, dict) and "scenes" not in fit for fit in fits.values())
+    return _budget_from_source(path, calibration) if legacy and path is not None else None
+
+
+SHIFT_TOLERANCE = 1e-9
+"""Logits by which a refitted calibration shift may differ from the recorded one (the order of
+floating-point sums may differ between builds); trials and successes must be equal."""
+
+
+def _budget_from_source(path: str, calibration: dict) -> dict[str, int] | None:
+    """Gripper name -> scenes, for the calibration record ``calibration`` of the result ``path``
+    written before its scene count was: its recorded ``source`` file is looked up as written (from
+    the working directory) and from every folder above ``path``, and refitted with the recorded
+    ``prior_sigma`` (:func:`common.calibration.calibration_from_result`). A file counts only when
+    it is the one fitted: its SHA-256 equals the recorded one where recorded, and the refit gives
+    the recorded grippers, trials, successes and shifts (to :data:`SHIFT_TOLERANCE`). None when no
+    file of that name exists; one line naming the result and the key when files exist but none is
+    the one fitted (the count cannot be recovered, and a comparison would not be checked)."""
+    source = calibration.get("source")
+    if not isinstance(source, str) or not source:
+        return None
+    here = Path(path).resolve().parent
+    found = [c for c in dict.fromkeys(p.resolve() for p in [Path(source), *(d / source for d in [here, *here.parents])])
+             if c.is_file()]
+    reasons = []
+    for candidate in found:
+        reason, refit = _refit_source(candidate, calibration)
+        if refit is not None:
+            return {name: fit.scenes for name, fit in sorted(refit.grippers.items())}
+        reasons.append(reason)
+    if reasons:
+        raise EvaluationError(f"{path}: calibration.{reasons[0]} (the calibration budget cannot be recovered)")
+    return None
+
+
+def _refit_source(candidate: Path, calibration: dict) -> tuple[str, Calibration | None]:
+    """(``""``, the refit) when ``candidate`` is the file the calibration record ``calibration`` was
+    fitted to (:func:`_budget_from_source`); else (why not, naming the record's key, None)."""
+    digest = calibration.get("sha256")
+    if digest:
+        actual = hashlib.sha256(candidate.read_bytes()).hexdigest()
+        if actual != digest:
+            return f"sha256: {str(digest)[:12]}..., but {candidate} has {actual[:12]}...", None
+    prior = calibration.get("prior_sigma")
+    if not isinstance(prior, (int, float)) or isinstance(prior, bool):
+        return f"prior_sigma: expected a number, got {prior!r}", None
+    try:
+        refit = calibration_from_result(str(candidate), read_result(str(candidate)), float(prior))
+    except ValueError as e:
+        return f"source: {candidate} cannot be refitted ({e})", None
+    recorded = calibration["grippers"]
+    if sorted(refit.grippers) != sorted(recorded):
+        return f"grippers: {sorted(recorded)}, but {candidate} has trials of {sorted(refit.grippers)}", None
+    for name, fit in sorted(refit.grippers.items()):
+        mine = recorded[name]
+        shift = mine.get("shift")
+        if (mine.get("trials"), mine.get("successes")) != (fit.trials, fit.successes) or not (
+                isinstance(shift, (int, float)) and abs(fit.shift - shift) <= SHIFT_TOLERANCE):
+            return (f"grippers.{name}: shift {shift!r} from {mine.get('successes')!r}/{mine.get('trials')!r} trials, "
+                    f"but refitting {candidate} gives {fit.shift!r} from {fit.successes}/{fit.trials}"), None
+    return "", refit
 
 
 def is_budget(budget) -> bool:
@@ -131,9 +199,9 @@ def _budget_text(budget: dict[str, int]) -> str:
 
 def _check_calibration_budget(tag: str, files: list[RunFile]) -> dict[str, int] | None:
     """The calibrated runs of one side were calibrated from as many scenes per gripper (a larger
-    budget is another method, not another run); files without the count are not checked. Returns
+    budget is another method, not another run); files whose count is unknown are not checked. Returns
     the side's budget where every file records it, else None."""
-    known = [(rf, b) for rf in files if (b := calibration_budget(rf.summary)) is not None]
+    known = [(rf, b) for rf in files if (b := calibration_budget(rf.summary, rf.path)) is not None]
     if not known:
         return None
     head, first = known[0]
@@ -261,9 +329,9 @@ def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, 
     if _scene_set(path, summary) != _scene_set(head, first):
         raise EvaluationError(f"{path}: scene_seed: its scenes are not those of {head}: the runs of one cell must be "
                               "evaluated on the same scenes")
-    mine = calibration_budget(summary)
+    mine = calibration_budget(summary, path)
     for other_path, other in cell:
-        theirs = calibration_budget(other)
+        theirs = calibration_budget(other, other_path)
         if mine is not None and theirs is not None and mine != theirs:
             raise EvaluationError(f"{path}: calibration: from {_budget_text(mine)}, but {other_path} from "
                                   f"{_budget_text(theirs)} (another calibration budget is another method, "

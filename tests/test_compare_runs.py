@@ -2,6 +2,7 @@
 
 import itertools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from scipy import stats
 from actors import compare as cmp
 from actors import compare_runs as cr
 from actors import evaluate as ev
+from common.calibration import calibration_from_result
 from tests.test_compare import SEEDS, result, write
 
 GRIPPERS = ("wsg_50", "panda_hand")
@@ -400,3 +402,69 @@ def test_calibrated_runs_of_one_budget_compare_with_their_raw_rows(tmp_path):
     with pytest.raises(ev.EvaluationError, match=r"b1\.json: calibration: scenes per gripper panda_hand 40, wsg_50 "
                                                  r"39, but .*b0\.json \(side B\) has 40 scenes per gripper"):
         cr.runs_cli(cli_args(raw, cal, "--paired"))
+
+
+def _fit_source(folder, name, scenes, rng):
+    """A fix-gripper result of ``scenes`` scenes per gripper, two scored grasps each, written to
+    ``folder``/``name``.json; returns its path and the calibration record an evaluation fitted to it
+    writes (:meth:`common.calibration.Calibration.to_dict`)."""
+    seeds = list(range(100, 100 + scenes))
+    data = result("fix-gripper", {g: [(1, 2)] * scenes for g in GRIPPERS}, seeds)
+    for record in data["episode_results"]:
+        record["trials"] = [{"gripper": record["gripper"], "score": float(rng.uniform(0.2, 0.9)),
+                             "success": bool(ok)} for ok in (True, False)]
+    folder.mkdir(exist_ok=True)
+    path = write(folder, name, data)
+    return path, calibration_from_result(path, data).to_dict()
+
+
+def _legacy_calibrated(tmp_path, rng, tag, records):
+    """Calibrated adagrasp runs in ``tmp_path``/results, run i with ``records[i]`` as its calibration,
+    each fit's ``scenes`` removed (written before the count was recorded)."""
+    runs = make_runs(tmp_path / "results", tag, "adagrasp", len(records), rng,
+                     models=[f"model:c{i}" for i in range(len(records))])
+    for (path,), record in zip(runs, records):
+        data = json.load(open(path))
+        old = {**record, "grippers": {g: {k: v for k, v in fit.items() if k != "scenes"}
+                                      for g, fit in record["grippers"].items()}}
+        data["calibration"] = {**old, "source": f"fits/{Path(record['source']).name}"}
+        json.dump(data, open(path, "w"))
+    return runs
+
+
+def test_results_written_before_the_budget_was_recorded_get_it_from_their_source(tmp_path):
+    """The calibration budget of a result without ``scenes`` comes from refitting its source file,
+    found above the result's folder: a run fitted from 6 scenes is not another run of a 9-scene
+    side, whatever the grasps per scene; a source that is not the one fitted is one line."""
+    rng = np.random.default_rng(21)
+    (tmp_path / "results").mkdir()
+    six, fit6 = _fit_source(tmp_path / "fits", "six", 6, rng)
+    _, fit9 = _fit_source(tmp_path / "fits", "nine", 9, rng)
+    raw = make_runs(tmp_path / "results", "r", "adagrasp", 2, rng, models=["model:c0", "model:c1"])
+    same = _legacy_calibrated(tmp_path, rng, "s", [fit9, fit9])
+    path = same[0][0]
+    assert "scenes" not in json.load(open(path))["calibration"]["grippers"]["wsg_50"]
+    assert cr.calibration_budget(json.load(open(path))) is None
+    assert cr.calibration_budget(json.load(open(path)), path) == {g: 9 for g in sorted(GRIPPERS)}
+    assert cr.runs_cli(cli_args(raw, same, "--paired"))["b"]["calibration_scenes"] == {g: 9 for g in GRIPPERS}
+    mixed = _legacy_calibrated(tmp_path, rng, "m", [fit9, fit6])
+    with pytest.raises(ev.EvaluationError, match=r"m1\.json: calibration: 6 scenes per gripper, but .*m0\.json "
+                                                 r"\(side B\) has 9 scenes per gripper"):
+        cr.runs_cli(cli_args(raw, mixed, "--paired"))
+    with pytest.raises(ev.EvaluationError, match=r"m1\.json: calibration: from 6 scenes per gripper, but .*m0\.json "
+                                                 r"from 9 scenes per gripper"):
+        ev.table(["--runs", mixed[0][0], mixed[1][0]])
+    assert "| adagrasp (calibrated) | obstacle O_te/G_te | 2 |" in ev.table(["--runs", same[0][0], same[1][0]])
+    data = json.load(open(six))
+    data["episode_results"][0]["trials"][1]["success"] = True
+    json.dump(data, open(six, "w"))
+    with pytest.raises(ev.EvaluationError, match=r"m1\.json: calibration\.grippers\.(panda_hand|wsg_50): shift .* "
+                                                 r"from 6/12 trials, but refitting .*six\.json gives .* from 7/12 \(the "
+                                                 r"calibration budget cannot be recovered\)"):
+        cr.runs_cli(cli_args(raw, mixed, "--paired"))
+    signed = _legacy_calibrated(tmp_path, rng, "d", [{**fit6, "sha256": "ab" * 32}])
+    with pytest.raises(ev.EvaluationError, match=r"d0\.json: calibration\.sha256: abababababab\.\.\., but .*six\.json "
+                                                 r"has [0-9a-f]{12}\.\.\."):
+        cr.calibration_budget(json.load(open(signed[0][0])), signed[0][0])
+    gone = _legacy_calibrated(tmp_path, rng, "g", [{**fit9, "source": "elsewhere/none.json"}])
+    assert cr.calibration_budget(json.load(open(gone[0][0])), gone[0][0]) is None
