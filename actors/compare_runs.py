@@ -131,18 +131,21 @@ floating-point sums may differ between builds); trials and successes must be equ
 def _budget_from_source(path: str, calibration: dict) -> dict[str, int] | None:
     """Gripper name -> scenes, for the calibration record ``calibration`` of the result ``path``
     written before its scene count was: its recorded ``source`` file is looked up as written (from
-    the working directory) and from every folder above ``path``, and refitted with the recorded
-    ``prior_sigma`` (:func:`common.calibration.calibration_from_result`). A file counts only when
-    it is the one fitted: its SHA-256 equals the recorded one where recorded, and the refit gives
-    the recorded grippers, trials, successes and shifts (to :data:`SHIFT_TOLERANCE`). None when no
-    file of that name exists; one line naming the result and the key when files exist but none is
-    the one fitted (the count cannot be recovered, and a comparison would not be checked)."""
+    the working directory) and from every folder above ``path`` (above the path as named, then above
+    the file a link names), and refitted with the recorded ``prior_sigma``
+    (:func:`common.calibration.calibration_from_result`). A file counts only when it is the one
+    fitted: its SHA-256 equals the recorded one where recorded, and the refit gives the recorded
+    grippers, trials, successes and shifts (to :data:`SHIFT_TOLERANCE`); the first that is wins.
+    None when no file of that name exists; one line naming the result and the key when files exist
+    but none is the one fitted (the count cannot be recovered, and a comparison would not be
+    checked)."""
     source = calibration.get("source")
     if not isinstance(source, str) or not source:
         return None
-    here = Path(path).resolve().parent
-    found = [c for c in dict.fromkeys(p.resolve() for p in [Path(source), *(d / source for d in [here, *here.parents])])
-             if c.is_file()]
+    folders = []
+    for here in (Path(path).absolute().parent, Path(path).resolve().parent):
+        folders += [here, *here.parents]
+    found = [c for c in dict.fromkeys([Path(source), *(d / source for d in folders)]) if _is_file(c)]
     reasons = []
     for candidate in found:
         reason, refit = _refit_source(candidate, calibration)
@@ -154,17 +157,29 @@ def _budget_from_source(path: str, calibration: dict) -> dict[str, int] | None:
     return None
 
 
+def _is_file(candidate: Path) -> bool:
+    """Whether ``candidate`` names a file; a name the system cannot look up (too long, a folder on
+    the way that cannot be read, a NUL byte) names none."""
+    try:
+        return candidate.is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def _refit_source(candidate: Path, calibration: dict) -> tuple[str, Calibration | None]:
     """(``""``, the refit) when ``candidate`` is the file the calibration record ``calibration`` was
     fitted to (:func:`_budget_from_source`); else (why not, naming the record's key, None)."""
     digest = calibration.get("sha256")
     if digest:
-        actual = hashlib.sha256(candidate.read_bytes()).hexdigest()
+        try:
+            actual = hashlib.sha256(candidate.read_bytes()).hexdigest()
+        except OSError as e:
+            return f"source: {candidate} cannot be read ({e.strerror or e})", None
         if actual != digest:
             return f"sha256: {str(digest)[:12]}..., but {candidate} has {actual[:12]}...", None
     prior = calibration.get("prior_sigma")
-    if not isinstance(prior, (int, float)) or isinstance(prior, bool):
-        return f"prior_sigma: expected a number, got {prior!r}", None
+    if not isinstance(prior, (int, float)) or isinstance(prior, bool) or not math.isfinite(prior):
+        return f"prior_sigma: expected a finite number, got {prior!r}", None
     try:
         refit = calibration_from_result(str(candidate), read_result(str(candidate)), float(prior))
     except ValueError as e:
@@ -317,8 +332,10 @@ def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, 
     which holds ``cell`` (path, result) already, as another training run of its row: a trained
     model other than each run there (:func:`model_difference`; without ``checkpoint_sha256`` in
     both, the checkpoint name tells them apart), of the cell of the first (:func:`check_one_cell`),
-    simulated alike, on the same scenes, and, for calibrated runs that record it, calibrated from as
-    many scenes per gripper. One line naming the file and key otherwise."""
+    simulated alike, on the same scenes, and, for calibrated runs, calibrated from as many scenes
+    per gripper where both budgets are known (recorded, or recovered from the
+    calibration's source: :func:`calibration_budget`; a pooled result's from its first file). One
+    line naming the file and key otherwise."""
     head, first = cell[0]
     _check_trained(path, summary, "--runs averages training runs")
     for other_path, other in cell:
@@ -329,9 +346,9 @@ def check_table_run(path: str, summary: dict, title: str, cell: list[tuple[str, 
     if _scene_set(path, summary) != _scene_set(head, first):
         raise EvaluationError(f"{path}: scene_seed: its scenes are not those of {head}: the runs of one cell must be "
                               "evaluated on the same scenes")
-    mine = calibration_budget(summary, path)
+    mine = calibration_budget(summary, summary.get("pooled_from", [path])[0])
     for other_path, other in cell:
-        theirs = calibration_budget(other, other_path)
+        theirs = calibration_budget(other, other.get("pooled_from", [other_path])[0])
         if mine is not None and theirs is not None and mine != theirs:
             raise EvaluationError(f"{path}: calibration: from {_budget_text(mine)}, but {other_path} from "
                                   f"{_budget_text(theirs)} (another calibration budget is another method, "

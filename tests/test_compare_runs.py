@@ -1,5 +1,6 @@
 """``evaluate runs``: rows compared across training runs; run rates, the t and randomization tests, errors."""
 
+import hashlib
 import itertools
 import json
 from pathlib import Path
@@ -413,7 +414,7 @@ def _fit_source(folder, name, scenes, rng):
     for record in data["episode_results"]:
         record["trials"] = [{"gripper": record["gripper"], "score": float(rng.uniform(0.2, 0.9)),
                              "success": bool(ok)} for ok in (True, False)]
-    folder.mkdir(exist_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
     path = write(folder, name, data)
     return path, calibration_from_result(path, data).to_dict()
 
@@ -468,3 +469,31 @@ def test_results_written_before_the_budget_was_recorded_get_it_from_their_source
         cr.calibration_budget(json.load(open(signed[0][0])), signed[0][0])
     gone = _legacy_calibrated(tmp_path, rng, "g", [{**fit9, "source": "elsewhere/none.json"}])
     assert cr.calibration_budget(json.load(open(gone[0][0])), gone[0][0]) is None
+
+
+def test_the_source_search_goes_on_past_files_of_that_name_that_are_not_the_one_fitted(tmp_path):
+    """A nearer file of the source's name that does not match (by SHA-256, or by refit where no
+    digest is recorded) is passed over for the one fitted; a link's folders are searched before
+    its target's; a name the system cannot look up names no file."""
+    rng = np.random.default_rng(22)
+    (tmp_path / "results").mkdir()
+    nine, fit9 = _fit_source(tmp_path / "fits", "nine", 9, rng)
+    digest = hashlib.sha256(Path(nine).read_bytes()).hexdigest()
+    decoy, _ = _fit_source(tmp_path / "results" / "fits", "nine", 6, rng)
+    for record in (fit9, {**fit9, "sha256": digest}):
+        (path,), = _legacy_calibrated(tmp_path, rng, "n", [record])
+        assert cr.calibration_budget(json.load(open(path)), path) == {g: 9 for g in sorted(GRIPPERS)}
+    Path(nine).unlink()
+    with pytest.raises(ev.EvaluationError, match=r"n0\.json: calibration\.sha256: .*, but .*results/fits/nine\.json "
+                                                 r"has .*\(the calibration budget cannot be recovered\)"):
+        cr.calibration_budget(json.load(open(path)), path)
+    linked = tmp_path / "elsewhere"
+    _, fit6 = _fit_source(linked / "fits", "six", 6, rng)
+    (path,), = _legacy_calibrated(tmp_path, rng, "l", [fit6])
+    (linked / "l0.json").symlink_to(path)
+    assert cr.calibration_budget(json.load(open(path)), path) is None
+    assert cr.calibration_budget(json.load(open(path)), str(linked / "l0.json")) == {g: 6 for g in sorted(GRIPPERS)}
+    unnamed = json.load(open(path))
+    for source in ("a" * 300 + "/x.json", "a\x00b.json"):
+        unnamed["calibration"]["source"] = source
+        assert cr.calibration_budget(unnamed, path) is None
