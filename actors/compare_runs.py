@@ -37,7 +37,6 @@ out.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import itertools
 import math
 from dataclasses import dataclass
@@ -58,7 +57,7 @@ from actors.compare import (
     table_rate,
 )
 from actors.evaluate import EvaluationError, check_output_path, read_result, row_label, write_json
-from common.calibration import Calibration, calibration_from_result
+from common.calibration import Calibration, calibration_from_result, file_sha256
 
 RUNS_FORMAT = "adagrasp-scale-run-comparison/1"
 """Value of the ``format`` key of a run comparison JSON."""
@@ -172,7 +171,7 @@ def _refit_source(candidate: Path, calibration: dict) -> tuple[str, Calibration 
     digest = calibration.get("sha256")
     if digest:
         try:
-            actual = hashlib.sha256(candidate.read_bytes()).hexdigest()
+            actual = file_sha256(candidate)
         except OSError as e:
             return f"source: {candidate} cannot be read ({e.strerror or e})", None
         if actual != digest:

@@ -55,7 +55,6 @@ Bad input ends with one line on stderr and exit status 2; nothing is written the
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import shlex
@@ -73,7 +72,7 @@ from actors.objects import ObjectSetError, object_names
 from actors.policies import make_policy
 from actors.rollout import episode_seed
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
-from common.calibration import Calibration, calibration_from_result
+from common.calibration import Calibration, calibration_from_result, file_sha256
 from common.checkpoint import CheckpointError, inference_config, read_checkpoint, resolve_checkpoint
 from common.config import Config, from_dict, load_config, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
@@ -357,7 +356,7 @@ def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
             )
     cal = calibration_from_result(str(path), data)
     cal.shifts(plan.gripper_names)  # every evaluated gripper has trials
-    return replace(cal, sha256=hashlib.sha256(Path(path).read_bytes()).hexdigest())
+    return replace(cal, sha256=file_sha256(path))
 
 
 # --------------------------------------------------------------------------------------

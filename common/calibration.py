@@ -22,7 +22,9 @@ Call loop::
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -161,6 +163,12 @@ def fit_calibration(trials: dict[str, list[tuple[float, bool]]], source: str,
         fits[name] = GripperFit(fit_shift(scores, ok, prior_sigma), len(rows), int(ok.sum()), float(scores.mean()),
                                 (scenes or {}).get(name, 0))
     return Calibration(fits, float(prior_sigma), source)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 (hex) of the bytes of the file ``path``: the digest a calibration records of its
+    source (:attr:`Calibration.sha256`) and the one its source is checked against."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def calibration_from_result(path: str, data: dict, prior_sigma: float = PRIOR_SIGMA) -> Calibration:
