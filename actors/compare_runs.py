@@ -24,7 +24,8 @@ seeds, and tests the difference of the mean over runs against the spread across 
 Both tests hold the scenes fixed: they say whether the difference exceeds the spread across training
 runs *on these scenes*; ``evaluate compare`` speaks to other scenes for one model. The files must be
 results of one cell (:data:`CELL_KEYS` and the gripper names) simulated alike (the same
-``config.sim``), each side one row, each run of a side another model (``checkpoint_sha256``, else
+``config.sim``; with ``--across-cameras`` the sides are two camera counts, each side one, and
+the rest one cell), each side one row, each run of a side another model (``checkpoint_sha256``, else
 the checkpoint name), no model on both sides unless paired, and the files of one run one model on
 different scene seeds (as ``evaluate compare --also``). A per-gripper file must have records of
 every gripper of the cell (or of ``--gripper``). The runs of a calibrated side must be calibrated
@@ -226,42 +227,55 @@ def _check_calibration_budget(tag: str, files: list[RunFile]) -> dict[str, int] 
     return first if len(known) == len(files) else None
 
 
-def _check_cell_and_rows(sides: list[list[list[RunFile]]]) -> list[dict[str, int] | None]:
-    """Every file: the first file's cell (:func:`check_one_cell`) and its side's row.
-    Returns each side's calibration budget (:func:`_check_calibration_budget`)."""
+def _check_cell_and_rows(sides: list[list[list[RunFile]]], across_cameras: bool = False
+                         ) -> list[dict[str, int] | None]:
+    """Every file: the first file's cell (:func:`check_one_cell`) and its side's row;
+    ``across_cameras``: the sides may differ in camera count, each side one count (a camera count
+    of a row against another). Returns each side's calibration budget
+    (:func:`_check_calibration_budget`)."""
     budgets = []
     first = sides[0][0][0]
     for tag, runs in zip("AB", sides):
         head = runs[0][0]
         for rf in (f for run in runs for f in run):
-            check_one_cell(rf.path, rf.summary, first.path, first.summary)
+            if across_cameras:
+                check_one_cell(rf.path, rf.summary, head.path, head.summary)
+                check_one_cell(rf.path, rf.summary, first.path, first.summary, ignore=("cameras",))
+            else:
+                check_one_cell(rf.path, rf.summary, first.path, first.summary)
             if row_label(rf.summary) != row_label(head.summary):
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")
         budgets.append(_check_calibration_budget(tag, [f for run in runs for f in run]))
+    cameras = [runs[0][0].summary.get("cameras") for runs in sides]
+    if across_cameras and cameras[0] == cameras[1]:
+        raise EvaluationError(f"{sides[1][0][0].path}: cameras: {cameras[1]!r}, as on side A: --across-cameras "
+                              "compares two camera counts")
     return budgets
 
 
-def check_one_cell(path: str, summary: dict, first_path: str, first: dict) -> None:
+def check_one_cell(path: str, summary: dict, first_path: str, first: dict, ignore: tuple[str, ...] = ()) -> None:
     """The result ``summary`` (file ``path``) is of the cell of ``first`` and measured alike: the
-    same :data:`CELL_KEYS`, gripper names and ``config.sim`` (:func:`_check_sim`). One line naming
-    the file and the key otherwise."""
+    same :data:`CELL_KEYS`, gripper names and ``config.sim`` (:func:`_check_sim`), but for the keys
+    in ``ignore`` (of both). One line naming the file and the key otherwise."""
     for key in ("scene", "objects"):
         if key not in summary:
             raise EvaluationError(f"{path}: {key}: missing")
     for key in CELL_KEYS:
-        if summary.get(key) != first.get(key):
+        if key not in ignore and summary.get(key) != first.get(key):
             raise EvaluationError(f"{path}: {key}: {summary.get(key)!r}, but {first_path} has {first.get(key)!r}: "
                                   "not one cell")
     mine, grippers = sorted(_candidates(path, summary)), sorted(_candidates(first_path, first))
     if mine != grippers:
         raise EvaluationError(f"{path}: gripper_names: {mine}, but {first_path} has {grippers}: not one cell")
-    _check_sim(path, summary, first_path, first)
+    _check_sim(path, summary, first_path, first, ignore)
 
 
-def _check_sim(path: str, summary: dict, first_path: str, first: dict) -> None:
-    """The two results were simulated alike (the same ``config.sim``). One line naming the keys otherwise."""
-    mine, theirs = ((s.get("config") or {}).get("sim") for s in (summary, first))
+def _check_sim(path: str, summary: dict, first_path: str, first: dict, ignore: tuple[str, ...] = ()) -> None:
+    """The two results were simulated alike (the same ``config.sim`` but for the keys in ``ignore``).
+    One line naming the keys otherwise."""
+    mine, theirs = ({k: v for k, v in sim.items() if k not in ignore} if isinstance(sim, dict) else sim
+                    for sim in ((s.get("config") or {}).get("sim") for s in (summary, first)))
     if mine != theirs:
         differ = sorted(k for k in (mine or {}).keys() | (theirs or {}).keys()
                         if (mine or {}).get(k) != (theirs or {}).get(k))
@@ -464,7 +478,8 @@ def _scenes(sides, grippers, drop_mismatched) -> tuple[list[int], list[int], lis
 
 
 def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[str] | None = None,
-              paired: bool = False, drop_mismatched: bool = False) -> tuple[list[Side], list[Side], dict]:
+              paired: bool = False, drop_mismatched: bool = False, across_cameras: bool = False
+              ) -> tuple[list[Side], list[Side], dict]:
     """Read and check the runs of both sides; one :class:`~actors.compare.Side` per run, its files
     pooled and its columns the shared scenes in one order for every run.
 
@@ -479,7 +494,7 @@ def run_sides(groups_a: list[list[str]], groups_b: list[list[str]], only: list[s
         if len(groups) < 2:
             raise EvaluationError(f"--{tag}: {len(groups)} run(s); the spread across runs needs at least 2 per side")
     sides = [_read_side("a", groups_a), _read_side("b", groups_b)]
-    budgets = _check_cell_and_rows(sides)
+    budgets = _check_cell_and_rows(sides, across_cameras)
     _check_models(sides, paired)
     grippers = _side_grippers(sides, only)
     kept, dropped, left_out = _scenes(sides, grippers, drop_mismatched)
@@ -568,9 +583,10 @@ def t_test(rates_a: np.ndarray, rates_b: np.ndarray, paired: bool) -> dict:
 
 
 def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: bool,
-                 draws: int = 10_000, seed: int = 0) -> dict:
+                 draws: int = 10_000, seed: int = 0, across_cameras: bool = False) -> dict:
     """The comparison of B's runs against A's (JSON-ready); ``seed`` seeds the random relabellings
-    (used only above :data:`EXACT_LIMIT`)."""
+    (used only above :data:`EXACT_LIMIT`); ``across_cameras`` (sides of two camera counts, checked
+    by :func:`run_sides`): the result records ``across_cameras`` and each side's ``cameras``."""
     ra, rb = run_rates(runs_a), run_rates(runs_b)
     rng = np.random.default_rng(seed)
     if paired:
@@ -584,6 +600,7 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
         head = runs[0]
         return {
             "row": row_label(head.summary),
+            **({"cameras": head.summary["cameras"]} if across_cameras else {}),
             "calibration_scenes": budget,
             "grippers": head.grippers,
             "candidates": _candidates(head.path, head.summary) if head.pooled else None,
@@ -605,6 +622,7 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
         "dropped_scene_seeds": info["dropped_scene_seeds"],
         "left_out_scenes": info["left_out"],
         "paired": paired,
+        **({"across_cameras": True} if across_cameras else {}),
         "a": side(runs_a, ra, info["calibration_scenes"][0]),
         "b": side(runs_b, rb, info["calibration_scenes"][1]),
         "mean_difference": float(rb.mean() - ra.mean()),
@@ -615,10 +633,11 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
 
 
 def side_label(side: dict) -> str:
-    """A side's row, with its calibration budget where recorded (``calibration_scenes``; comparisons
-    written before it was recorded lack the key)."""
+    """A side's row, with its camera count where the sides differ in it (``cameras``) and its
+    calibration budget where recorded (``calibration_scenes``; comparisons written before it was
+    recorded lack the key)."""
     budget = side.get("calibration_scenes")
-    row = side.get("row", "?")
+    row = side.get("row", "?") + (f", {side['cameras']} camera(s)" if "cameras" in side else "")
     return f"{row}, {_budget_text(budget)}" if is_budget(budget) else row
 
 
@@ -664,6 +683,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="one training run of the row compared against A; repeat per run")
     ap.add_argument("--paired", action="store_true",
                     help="run i of B is the model of run i of A (two rows of one training run)")
+    ap.add_argument("--across-cameras", action="store_true",
+                    help="the sides are two camera counts (each side one count; the rest one cell)")
     ap.add_argument("--gripper", default=None, metavar="NAME[,NAME...]",
                     help="per-gripper results: keep only these grippers")
     ap.add_argument("--drop-mismatched-scenes", action="store_true",
@@ -683,8 +704,9 @@ def runs_cli(argv: list[str]) -> dict:
     check_output_path("--json", args.json)
     only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
     split = [[[f.strip() for f in group.split(",")] for group in groups] for groups in (args.a, args.b)]
-    runs_a, runs_b, info = run_sides(split[0], split[1], only, args.paired, args.drop_mismatched_scenes)
-    result = compare_runs(runs_a, runs_b, info, args.paired, args.draws, args.seed)
+    runs_a, runs_b, info = run_sides(split[0], split[1], only, args.paired, args.drop_mismatched_scenes,
+                                     args.across_cameras)
+    result = compare_runs(runs_a, runs_b, info, args.paired, args.draws, args.seed, args.across_cameras)
     print(report(result), end="")
     if args.json:
         write_json(args.json, result)

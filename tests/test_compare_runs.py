@@ -241,6 +241,34 @@ def _other_cameras(tmp_path, rng):
     return make_runs(tmp_path, "a", "fix-gripper", 2, rng), b
 
 
+def _with_cameras(runs, cameras, extra_sim=None):
+    """Rewrite every file of ``runs`` as evaluated with ``cameras`` cameras (key and ``config.sim``)."""
+    for path in (f for run in runs for f in run):
+        data = json.load(open(path))
+        sim = {"cameras": cameras, "solver_iterations": 150, **(extra_sim or {})}
+        json.dump({**data, "cameras": cameras, "config": {"sim": sim}}, open(path, "w"))
+    return runs
+
+
+def _cameras_within_a_side(tmp_path, rng):
+    """--across-cameras: one run of side B with another camera count than the other."""
+    b = _with_cameras(make_runs(tmp_path, "b", "fix-gripper", 2, rng), 2)
+    _with_cameras(b[1:], 3)
+    return _with_cameras(make_runs(tmp_path, "a", "fix-gripper", 2, rng), 1), b
+
+
+def _one_camera_count_across(tmp_path, rng):
+    """--across-cameras with both sides of one camera count."""
+    return (_with_cameras(make_runs(tmp_path, "a", "fix-gripper", 2, rng), 2),
+            _with_cameras(make_runs(tmp_path, "b", "fix-gripper", 2, rng), 2))
+
+
+def _other_simulator_across_cameras(tmp_path, rng):
+    """--across-cameras lets the camera count differ, not the rest of the simulator."""
+    return (_with_cameras(make_runs(tmp_path, "a", "fix-gripper", 2, rng), 1),
+            _with_cameras(make_runs(tmp_path, "b", "fix-gripper", 2, rng), 2, {"solver_iterations": 50}))
+
+
 def _other_simulator(tmp_path, rng):
     """A run evaluated with other solver settings: another measurement, not another run."""
     b = make_runs(tmp_path, "b", "fix-gripper", 2, rng)
@@ -298,6 +326,11 @@ def _two_calibration_budgets(tmp_path, rng):
     (_other_cameras, [], r"b1\.json: cameras: 2, but .*a0\.json has 1: not one cell"),
     (_other_simulator, [], r"b1\.json: config\.sim: differs from .*a0\.json in solver_iterations: not "
                            r"simulated alike"),
+    (_cameras_within_a_side, ["--across-cameras"], r"b1\.json: cameras: 3, but .*b0\.json has 2: not one cell"),
+    (_one_camera_count_across, ["--across-cameras"], r"b0\.json: cameras: 2, as on side A: --across-cameras "
+                                                     r"compares two camera counts"),
+    (_other_simulator_across_cameras, ["--across-cameras"], r"b0\.json: config\.sim: differs from .*a0\.json in "
+                                                            r"solver_iterations: not simulated alike"),
     (_one_model_on_both_sides, [], r"b0\.json: checkpoint: the model of .*a0\.json on side A: two rows of one "
                                    r"model compare with --paired"),
     (_digest_on_one_file_only, [], r"a1\.json: checkpoint: the model of .*a0\.json, also a run of side A"),
@@ -497,3 +530,23 @@ def test_the_source_search_goes_on_past_files_of_that_name_that_are_not_the_one_
     for source in ("a" * 300 + "/x.json", "a\x00b.json"):
         unnamed["calibration"]["source"] = source
         assert cr.calibration_budget(unnamed, path) is None
+
+
+def test_across_cameras_compares_two_camera_counts_of_one_row_as_any_two_rows(tmp_path):
+    """--across-cameras: the sides are one row at two camera counts (one cell otherwise); the
+    figures are those of the same files with the camera count made equal, and the comparison
+    records each side's count."""
+    rng = np.random.default_rng(21)
+    models = [f"model:m{i}" for i in range(3)]
+    a = _with_cameras(make_runs(tmp_path, "a", "fix-gripper", 3, rng, models=models), 1)
+    b = _with_cameras(make_runs(tmp_path, "b", "fix-gripper", 3, rng, models=models), 4)
+    with pytest.raises(ev.EvaluationError, match=r"b0\.json: cameras: 4, but .*a0\.json has 1: not one cell"):
+        cr.runs_cli(cli_args(a, b, "--paired"))
+    out = cr.runs_cli(cli_args(a, b, "--paired", "--across-cameras", "--json", str(tmp_path / "c.json")))
+    assert (out["across_cameras"], out["a"]["cameras"], out["b"]["cameras"]) == (True, 1, 4)
+    assert json.load(open(tmp_path / "c.json")) == out
+    assert cr.side_label(out["b"]) == "fix-gripper, 4 camera(s)"
+    same = cr.runs_cli(cli_args(a, _with_cameras(b, 1), "--paired"))
+    assert "across_cameras" not in same and "cameras" not in same["a"]
+    for key in ("mean_difference", "run_differences", "t", "randomization", "scene_seeds"):
+        assert out[key] == same[key], key
