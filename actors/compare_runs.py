@@ -247,11 +247,26 @@ def _check_cell_and_rows(sides: list[list[list[RunFile]]], across_cameras: bool 
                 raise EvaluationError(f"{rf.path}: row: {row_label(rf.summary)!r}, but {head.path} (side {tag}) "
                                       f"has {row_label(head.summary)!r}: each side is one row")
         budgets.append(_check_calibration_budget(tag, [f for run in runs for f in run]))
-    cameras = [runs[0][0].summary.get("cameras") for runs in sides]
-    if across_cameras and cameras[0] == cameras[1]:
-        raise EvaluationError(f"{sides[1][0][0].path}: cameras: {cameras[1]!r}, as on side A: --across-cameras "
-                              "compares two camera counts")
+    if across_cameras:
+        _check_across_cameras(sides)
     return budgets
+
+
+def _check_across_cameras(sides: list[list[list[RunFile]]]) -> None:
+    """``--across-cameras``: every file's ``config.sim.cameras`` (where recorded) is its
+    ``cameras``, the sides' first files are one row at two camera counts. One line otherwise."""
+    for rf in (f for runs in sides for run in runs for f in run):
+        sim = (rf.summary.get("config") or {}).get("sim")
+        if isinstance(sim, dict) and "cameras" in sim and sim["cameras"] != rf.summary.get("cameras"):
+            raise EvaluationError(f"{rf.path}: config.sim.cameras: {sim['cameras']!r}, but its cameras is "
+                                  f"{rf.summary.get('cameras')!r}")
+    a, b = sides[0][0][0], sides[1][0][0]
+    if row_label(b.summary) != row_label(a.summary):
+        raise EvaluationError(f"{b.path}: row: {row_label(b.summary)!r}, but {a.path} (side A) has "
+                              f"{row_label(a.summary)!r}: --across-cameras compares one row at two camera counts")
+    if b.summary.get("cameras") == a.summary.get("cameras"):
+        raise EvaluationError(f"{b.path}: cameras: {b.summary.get('cameras')!r}, as on side A: --across-cameras "
+                              "compares two camera counts")
 
 
 def check_one_cell(path: str, summary: dict, first_path: str, first: dict, ignore: tuple[str, ...] = ()) -> None:
@@ -274,7 +289,11 @@ def check_one_cell(path: str, summary: dict, first_path: str, first: dict, ignor
 def _check_sim(path: str, summary: dict, first_path: str, first: dict, ignore: tuple[str, ...] = ()) -> None:
     """The two results were simulated alike (the same ``config.sim`` but for the keys in ``ignore``).
     One line naming the keys otherwise."""
-    mine, theirs = ({k: v for k, v in sim.items() if k not in ignore} if isinstance(sim, dict) else sim
+    for name, s in ((path, summary), (first_path, first)):
+        config = s.get("config")
+        if not isinstance(config, (dict, type(None))) or not isinstance((config or {}).get("sim"), (dict, type(None))):
+            raise EvaluationError(f"{name}: config.sim: not an object")
+    mine, theirs = ({k: v for k, v in sim.items() if k not in ignore} if sim is not None else None
                     for sim in ((s.get("config") or {}).get("sim") for s in (summary, first)))
     if mine != theirs:
         differ = sorted(k for k in (mine or {}).keys() | (theirs or {}).keys()
@@ -632,12 +651,12 @@ def compare_runs(runs_a: list[Side], runs_b: list[Side], info: dict, paired: boo
     }
 
 
-def side_label(side: dict) -> str:
-    """A side's row, with its camera count where the sides differ in it (``cameras``) and its
+def side_label(side: dict, cameras: bool = False) -> str:
+    """A side's row, with its camera count (``cameras``: a comparison ``--across-cameras``) and its
     calibration budget where recorded (``calibration_scenes``; comparisons written before it was
     recorded lack the key)."""
     budget = side.get("calibration_scenes")
-    row = side.get("row", "?") + (f", {side['cameras']} camera(s)" if "cameras" in side else "")
+    row = side.get("row", "?") + (f", {side.get('cameras')} camera(s)" if cameras else "")
     return f"{row}, {_budget_text(budget)}" if is_budget(budget) else row
 
 
@@ -646,7 +665,8 @@ def report(c: dict) -> str:
 
     def side(tag: str, s: dict) -> str:
         rates = " ".join(f"{r['rate']:.3f}" for r in s["runs"])
-        return (f"  {tag} {side_label(s)}, {len(s['runs'])} runs: {rates} -> mean {s['mean']:.3f} "
+        label = side_label(s, bool(c.get("across_cameras")))
+        return (f"  {tag} {label}, {len(s['runs'])} runs: {rates} -> mean {s['mean']:.3f} "
                 f"(sd {s['sd']:.3f}, range {s['range'][0]:.3f} to {s['range'][1]:.3f})")
 
     t = c["t"]

@@ -61,7 +61,8 @@ def _number(path: str, key: str, value, optional: bool = False):
 
 def _read(path: str, test: str) -> dict:
     """One comparison file: its label (its rows; a runs file's with each side's calibration budget
-    where recorded), difference, the p-value corrected and the smallest it can be."""
+    where recorded and, across camera counts, camera count), difference, the p-value corrected and
+    the smallest it can be."""
     data = read_json(path)
     fmt = data.get("format") if isinstance(data, dict) else type(data).__name__
     if fmt not in (COMPARE_FORMAT, RUNS_FORMAT):
@@ -71,7 +72,8 @@ def _read(path: str, test: str) -> dict:
         if not isinstance(data.get(side), dict):
             raise EvaluationError(f"{path}: {side}: missing or not an object")
     a, b = data["a"], data["b"]
-    label = f"{side_label(a)} -> {side_label(b)}"
+    cameras = fmt == RUNS_FORMAT and bool(data.get("across_cameras"))
+    label = f"{side_label(a, cameras)} -> {side_label(b, cameras)}"
     if fmt == COMPARE_FORMAT:
         if a.get("row") == b.get("row"):
             label = f"{a.get('row', '?')}: {a.get('checkpoint')} -> {b.get('checkpoint')}"

@@ -269,6 +269,29 @@ def _other_simulator_across_cameras(tmp_path, rng):
             _with_cameras(make_runs(tmp_path, "b", "fix-gripper", 2, rng), 2, {"solver_iterations": 50}))
 
 
+def _two_rows_across_cameras(tmp_path, rng):
+    """--across-cameras: one row at two counts, not two rows."""
+    return (_with_cameras(make_runs(tmp_path, "a", "fix-gripper", 2, rng), 1),
+            _with_cameras(make_runs(tmp_path, "b", "fix-config", 2, rng), 2))
+
+
+def _sim_cameras_not_the_files(tmp_path, rng):
+    """Files whose cameras key (2) and config.sim.cameras (1, as on side A) disagree."""
+    b = _with_cameras(make_runs(tmp_path, "b", "fix-gripper", 2, rng), 2)
+    for (path,) in b:
+        data = json.load(open(path))
+        data["config"]["sim"]["cameras"] = 1
+        json.dump(data, open(path, "w"))
+    return _with_cameras(make_runs(tmp_path, "a", "fix-gripper", 2, rng), 1), b
+
+
+def _sim_not_an_object(tmp_path, rng):
+    b = make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    data = json.load(open(b[1][0]))
+    json.dump({**data, "config": {"sim": "arm"}}, open(b[1][0], "w"))
+    return make_runs(tmp_path, "a", "fix-gripper", 2, rng), b
+
+
 def _other_simulator(tmp_path, rng):
     """A run evaluated with other solver settings: another measurement, not another run."""
     b = make_runs(tmp_path, "b", "fix-gripper", 2, rng)
@@ -329,6 +352,10 @@ def _two_calibration_budgets(tmp_path, rng):
     (_cameras_within_a_side, ["--across-cameras"], r"b1\.json: cameras: 3, but .*b0\.json has 2: not one cell"),
     (_one_camera_count_across, ["--across-cameras"], r"b0\.json: cameras: 2, as on side A: --across-cameras "
                                                      r"compares two camera counts"),
+    (_two_rows_across_cameras, ["--across-cameras"], r"b0\.json: row: 'fix-config', but .*a0\.json \(side A\) "
+                                                      r"has 'fix-gripper': --across-cameras compares one row"),
+    (_sim_cameras_not_the_files, ["--across-cameras"], r"b0\.json: config\.sim\.cameras: 1, but its cameras is 2"),
+    (_sim_not_an_object, [], r"b1\.json: config\.sim: not an object"),
     (_other_simulator_across_cameras, ["--across-cameras"], r"b0\.json: config\.sim: differs from .*a0\.json in "
                                                             r"solver_iterations: not simulated alike"),
     (_one_model_on_both_sides, [], r"b0\.json: checkpoint: the model of .*a0\.json on side A: two rows of one "
@@ -545,7 +572,8 @@ def test_across_cameras_compares_two_camera_counts_of_one_row_as_any_two_rows(tm
     out = cr.runs_cli(cli_args(a, b, "--paired", "--across-cameras", "--json", str(tmp_path / "c.json")))
     assert (out["across_cameras"], out["a"]["cameras"], out["b"]["cameras"]) == (True, 1, 4)
     assert json.load(open(tmp_path / "c.json")) == out
-    assert cr.side_label(out["b"]) == "fix-gripper, 4 camera(s)"
+    assert cr.side_label(out["b"], cameras=True) == "fix-gripper, 4 camera(s)"
+    assert "B fix-gripper, 4 camera(s), 3 runs" in cr.report(out)
     same = cr.runs_cli(cli_args(a, _with_cameras(b, 1), "--paired"))
     assert "across_cameras" not in same and "cameras" not in same["a"]
     for key in ("mean_difference", "run_differences", "t", "randomization", "scene_seeds"):

@@ -11,7 +11,7 @@ from actors import compare as cmp
 from actors import compare_runs as cr
 from actors import evaluate as ev
 from actors import holm as hm
-from tests.test_compare_runs import GRIPPERS, _calibrated, cli_args, make_runs
+from tests.test_compare_runs import GRIPPERS, _calibrated, _with_cameras, cli_args, make_runs
 
 
 def holm_by_definition(p):
@@ -231,3 +231,19 @@ def test_two_calibration_budgets_of_one_row_are_told_apart_by_their_labels(tmp_p
     assert json.load(open(files[0]))["a"]["calibration_scenes"] is None
     labels = [r["label"] for r in hm.holm_cli(files)["comparisons"]]
     assert labels == [f"adagrasp -> adagrasp (calibrated), {n} scenes per gripper (runs)" for n in (10, 40)]
+
+
+def test_labels_name_camera_counts_only_for_a_comparison_across_them(tmp_path):
+    """An evaluate compare file records each side's cameras; its label is its two rows. An
+    evaluate runs file --across-cameras names each side's count."""
+    rng = np.random.default_rng(7)
+    rows = _compare_file(tmp_path, rng, "rows", policy_b="fix-config")
+    models = ["model:m0", "model:m1"]
+    a = _with_cameras(make_runs(tmp_path, "one", "fix-gripper", 2, rng, models=models), 1)
+    b = _with_cameras(make_runs(tmp_path, "three", "fix-gripper", 2, rng, models=models), 3)
+    across = str(tmp_path / "across.json")
+    cr.runs_cli(cli_args(a, b, "--paired", "--across-cameras", "--json", across))
+    assert json.load(open(rows))["a"]["cameras"] == 1
+    labels = [r["label"] for r in hm.holm_cli([rows, across])["comparisons"]]
+    assert labels == ["fix-gripper -> fix-config",
+                      "fix-gripper, 1 camera(s) -> fix-gripper, 3 camera(s) (runs)"]
