@@ -256,8 +256,8 @@ def _check_across_cameras(sides: list[list[list[RunFile]]]) -> None:
     """``--across-cameras``: every file's ``config.sim.cameras`` (where recorded) is its
     ``cameras``, the sides' first files are one row at two camera counts. One line otherwise."""
     for rf in (f for runs in sides for run in runs for f in run):
-        sim = (rf.summary.get("config") or {}).get("sim")
-        if isinstance(sim, dict) and "cameras" in sim and sim["cameras"] != rf.summary.get("cameras"):
+        sim = _sim(rf.path, rf.summary)
+        if sim is not None and "cameras" in sim and sim["cameras"] != rf.summary.get("cameras"):
             raise EvaluationError(f"{rf.path}: config.sim.cameras: {sim['cameras']!r}, but its cameras is "
                                   f"{rf.summary.get('cameras')!r}")
     a, b = sides[0][0][0], sides[1][0][0]
@@ -286,15 +286,20 @@ def check_one_cell(path: str, summary: dict, first_path: str, first: dict, ignor
     _check_sim(path, summary, first_path, first, ignore)
 
 
+def _sim(path: str, summary: dict) -> dict | None:
+    """The result's ``config.sim`` (None where not recorded); one line when it is not an object."""
+    config = summary.get("config")
+    sim = config.get("sim") if isinstance(config, dict) else config
+    if not isinstance(sim, (dict, type(None))):
+        raise EvaluationError(f"{path}: config.sim: not an object")
+    return sim
+
+
 def _check_sim(path: str, summary: dict, first_path: str, first: dict, ignore: tuple[str, ...] = ()) -> None:
     """The two results were simulated alike (the same ``config.sim`` but for the keys in ``ignore``).
     One line naming the keys otherwise."""
-    for name, s in ((path, summary), (first_path, first)):
-        config = s.get("config")
-        if not isinstance(config, (dict, type(None))) or not isinstance((config or {}).get("sim"), (dict, type(None))):
-            raise EvaluationError(f"{name}: config.sim: not an object")
     mine, theirs = ({k: v for k, v in sim.items() if k not in ignore} if sim is not None else None
-                    for sim in ((s.get("config") or {}).get("sim") for s in (summary, first)))
+                    for sim in (_sim(path, summary), _sim(first_path, first)))
     if mine != theirs:
         differ = sorted(k for k in (mine or {}).keys() | (theirs or {}).keys()
                         if (mine or {}).get(k) != (theirs or {}).get(k))
