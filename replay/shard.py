@@ -756,10 +756,12 @@ class ReplayShard:
         first = max(self._first, n + 1 - self.capacity)
         evicted = range(self._first, first)
         self._write_commit(first, n + 1)
-        for e in evicted:
-            self._release_slot(e % self.slots, e)
+        # count the new trial's use of its row before the evicted trials release theirs: when it
+        # reuses the row of its only evicted user, that row must not go back to the free list
         self._refcount[row] += 1
         self._slot_row[slot] = row
+        for e in evicted:
+            self._release_slot(e % self.slots, e)
         if new_row:
             self._row_of[key] = row
         self._tokens[rec.token] = n

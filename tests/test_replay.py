@@ -211,6 +211,29 @@ def test_gripper_table_stored_once_and_refcounted(tmp_path):
         assert again.get_trial(int(t)).gripper_key == again._table["gripper_table_key"][row]
 
 
+def test_row_reused_by_the_new_trial_outlives_the_evicted_user(tmp_path):
+    """Keys K, A, K, B at capacity 2: the third trial reuses K's row while evicting its only other
+    user; the row must stay taken, so B gets a row of its own and trial 2 still reads K."""
+    cfg = tiny_cfg(capacity=2)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    openings = (0.5, 1.0)
+    trials = {}
+    for n, (name, scale) in enumerate([("K", 1.0), ("A", 0.9), ("K", 1.0), ("B", 1.1)]):
+        enc = synthetic_gripper_encoding(cfg.gripper_grid, openings, scale)
+        t = make_trial(cfg, n, gripper=name, scale=scale, openings=openings, encoding=enc)
+        t.action = t.action[:3] + (0,)
+        trials[n] = t
+        shard.insert(t)
+        rows = shard.column("gripper_row", shard.visible_ids())
+        assert len(set(rows.tolist())) == len(rows), (n, rows)  # the visible keys differ, so must their rows
+        assert not set(rows.tolist()) & set(shard._free_rows), (n, rows, shard._free_rows)
+    for reader in (shard, ReplayShard(tmp_path / "s", cfg, read_only=True)):
+        for n in reader.visible_ids():
+            got, want = reader.get_trial(int(n)), trials[int(n)]
+            assert got.gripper_key == want.gripper_key
+            assert np.abs(got.gripper_encoding - want.gripper_encoding[0]).max() <= 1 / 254 + 1e-7
+
+
 def test_duplicate_token_is_stored_once(tmp_path):
     cfg = tiny_cfg()
     shard = ReplayShard(tmp_path / "s", cfg)
