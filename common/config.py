@@ -28,6 +28,8 @@ from typing import Any
 
 import yaml
 
+from common.files import atomic_write_text
+
 
 class ConfigError(ValueError):
     """A config file, key or value is wrong; the message names the file and the key."""
@@ -384,6 +386,9 @@ _RANGES: dict[str, tuple[float, float]] = {
     "replay.shard_num_cpus": (0.0, 1024.0),
     "learner.lr": (1e-9, 1.0),
     "learner.batch_size": (2, 4096),
+    "learner.min_replay": (0, 10**9),
+    "learner.epsilon_decay_trials": (0, 10**12),
+    "learner.checkpoint_minutes": (1e-3, 1e6),
     "learner.augment_prob": (0.0, 1.0),
     "learner.epsilon_start": (0.0, 1.0),
     "learner.epsilon_end": (0.0, 1.0),
@@ -525,6 +530,12 @@ def _cross_checks(cfg: Config, source: str) -> None:
         raise ConfigError(f"{source}: grippers.opening_range: expected 0 <= low <= high <= 1, got {(lo, hi)}")
     if any(not 0 <= o <= 1 for o in cfg.grippers.eval_openings):
         raise ConfigError(f"{source}: grippers.eval_openings: every opening must lie in [0, 1]")
+    if cfg.learner.batch_size % 2:
+        raise ConfigError(
+            f"{source}: learner.batch_size: must be even (half successes, half failures), got {cfg.learner.batch_size}"
+        )
+    if cfg.learner.min_replay == 0 and not cfg.replay.seed_from:
+        raise ConfigError(f"{source}: learner.min_replay: 0 needs replay.seed_from (training on an empty replay)")
 
 
 def config_path(name_or_path: str | Path) -> Path:
@@ -595,5 +606,5 @@ def from_dict(data: dict, source: str = "<checkpoint>") -> Config:
 
 
 def save_config(cfg: Config, path: str | Path) -> None:
-    """Write the resolved config as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+    """Write the resolved config as YAML, whole or not at all (a crash leaves the old file)."""
+    atomic_write_text(Path(path), yaml.safe_dump(to_dict(cfg), sort_keys=False))

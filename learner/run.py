@@ -33,7 +33,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m launcher", description=__doc__.splitlines()[0])
     p.add_argument("--actors", type=int, default=2, help="grasp actors (0 = everything in this process)")
     p.add_argument("--shards", type=int, default=None, help="replay shards (default: replay.shards)")
-    p.add_argument("--config", default="default", help="config name (default|paper|tiny) or YAML path")
+    p.add_argument("--config", default=None, help="config name (default|paper|tiny) or YAML path (default: default)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config key")
     p.add_argument("--run-dir", default=None, help="run directory (default: runs/<time>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir")
@@ -50,8 +50,14 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not args.run_dir:
             raise ConfigError("--resume: needs --run-dir of the run to continue")
         run_dir = Path(args.run_dir)
+        if args.config is not None:
+            raise ConfigError(
+                f"--config {args.config}: a resumed run keeps {run_dir / 'config.yaml'}; change a key with --set"
+            )
         if not (run_dir / "config.yaml").is_file():
             raise ConfigError(f"{run_dir / 'config.yaml'}: not found; nothing to resume")
+        if not (run_dir / "config.yaml").read_text().strip():
+            raise ConfigError(f"{run_dir / 'config.yaml'}: empty; a run's config.yaml holds the config it started with")
         cfg = load_config(run_dir / "config.yaml", overrides=args.set)
         recorded = load_config(run_dir / "config.yaml").replay.seed_from
         if cfg.replay.seed_from != recorded:
@@ -61,7 +67,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
                 f"it cannot be seeded again"
             )
     else:
-        cfg = load_config(args.config, overrides=args.set)
+        cfg = load_config(args.config or "default", overrides=args.set)
         run_dir = Path(args.run_dir) if args.run_dir else Path(cfg.run.run_dir) / time.strftime("%Y%m%d-%H%M%S")
         if (run_dir / "config.yaml").exists():
             raise ConfigError(f"{run_dir}: already holds a run; pass --resume to continue it")

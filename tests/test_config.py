@@ -46,6 +46,31 @@ def test_unknown_key_is_one_line_naming_it():
     assert "\n" not in str(e.value) and "learner.init_weight" in str(e.value)
 
 
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("learner.batch_size=7", "learner.batch_size"),
+        ("learner.min_replay=-5", "learner.min_replay"),
+        ("learner.min_replay=0", "learner.min_replay"),
+        ("learner.checkpoint_minutes=-1", "learner.checkpoint_minutes"),
+        ("learner.checkpoint_minutes=.nan", "learner.checkpoint_minutes"),
+        ("learner.epsilon_decay_trials=-3", "learner.epsilon_decay_trials"),
+    ],
+)
+def test_learner_values_that_would_fail_later_are_refused_at_load(override, field):
+    """Values the learner cannot run with (an odd balanced batch, training on an empty replay,
+    no periodic checkpoints, a negative schedule) are one line at load, not a failure in a
+    Ray task after the actors have collected min_replay trials."""
+    with pytest.raises(ConfigError) as e:
+        load_config("default", overrides=[override])
+    assert "\n" not in str(e.value) and str(e.value).startswith(f"--set: {field}: "), str(e.value)
+
+
+def test_min_replay_of_zero_is_allowed_with_a_seeded_replay():
+    cfg = load_config("default", overrides=["learner.min_replay=0", "replay.seed_from=runs/earlier"])
+    assert cfg.learner.min_replay == 0
+
+
 def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
     """PyYAML reads YAML 1.1, where 1e-4 is a string; in --set and in YAML files it is the number
     1e-4 (YAML 1.2), and the saved config reads back the same. Words stay errors."""

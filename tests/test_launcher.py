@@ -18,7 +18,7 @@ import pytest
 import zarr
 
 from common.checkpoint import read_checkpoint
-from common.config import load_config
+from common.config import load_config, save_config
 from learner.run import cli, with_earlier_parts
 from replay.client import ReplayClient, open_local_shards
 from replay.schema import ATTR_KEY, SCHEMA_VERSION
@@ -111,6 +111,24 @@ def test_resume_requires_existing_run(tmp_path, capsys):
     rc = cli(["--resume", "--run-dir", str(tmp_path / "nothing")])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "config.yaml" in err
+
+
+def test_resume_refuses_a_config_file_and_an_empty_run_config(tmp_path, capsys):
+    """--resume runs with RUN/config.yaml: another --config would be ignored, and an empty
+    RUN/config.yaml would resume with the defaults; both are one line, and nothing is written."""
+    run_dir = tmp_path / "r"
+    run_dir.mkdir()
+    save_config(load_config("tiny"), run_dir / "config.yaml")
+    before = (run_dir / "config.yaml").read_bytes()
+    rc = cli(["--resume", "--run-dir", str(run_dir), "--config", "paper"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error: --config paper:") and "--set" in err[0], err
+    assert (run_dir / "config.yaml").read_bytes() == before and sorted(os.listdir(run_dir)) == ["config.yaml"]
+    (run_dir / "config.yaml").write_text("\n")
+    rc = cli(["--resume", "--run-dir", str(run_dir)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "config.yaml: empty" in err[0], err
+    assert sorted(os.listdir(run_dir)) == ["config.yaml"]
 
 
 def test_resumed_run_summary_keeps_the_earlier_parts(tmp_path, capsys):
