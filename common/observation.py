@@ -29,11 +29,18 @@ class Observation:
     """(X, Y) bool, True where some camera observed the column."""
 
     def validate(self) -> "Observation":
-        x, y, z = self.tsdf.shape
-        assert self.tsdf.dtype == np.float32 and self.tsdf.ndim == 3, self.tsdf.shape
-        assert self.obstacle.shape == (x, y, z) and self.obstacle.dtype == np.float32, self.obstacle.shape
-        assert self.heightmap.shape == (x, y) and self.heightmap.dtype == np.float32, self.heightmap.shape
-        assert self.valid.shape == (x, y) and self.valid.dtype == np.bool_, self.valid.shape
+        t = self.tsdf
+        assert t.dtype == np.float32 and t.ndim == 3, (
+            f"observation.tsdf: {t.shape} {t.dtype}, expected (X, Y, Z) float32"
+        )
+        x, y, z = t.shape
+        for name, want, dtype in (
+            ("obstacle", (x, y, z), np.float32), ("heightmap", (x, y), np.float32), ("valid", (x, y), np.bool_)
+        ):
+            a = getattr(self, name)
+            assert a.shape == want and a.dtype == dtype, (
+                f"observation.{name}: {a.shape} {a.dtype}, expected {want} {np.dtype(dtype)}"
+            )
         return self
 
 
@@ -98,9 +105,15 @@ class Trial:
     def validate(self) -> "Trial":
         self.observation.validate()
         enc = self.gripper_encoding
-        assert enc.ndim == 5 and enc.shape[1] == 2 and enc.dtype == np.float32, enc.shape
-        assert enc.shape[0] == len(self.meta.openings), (enc.shape, self.meta.openings)
+        assert enc.ndim == 5 and enc.shape[1] == 2 and enc.dtype == np.float32, (
+            f"gripper_encoding: {enc.shape} {enc.dtype}, expected (S, 2, gX, gY, gZ) float32"
+        )
+        assert enc.shape[0] == len(self.meta.openings), (
+            f"gripper_encoding: {enc.shape[0]} openings, meta.openings has {len(self.meta.openings)}"
+        )
         i, j, k, s = self.action
         x, y, _ = self.observation.tsdf.shape
-        assert 0 <= i < x and 0 <= j < y and k >= 0 and 0 <= s < enc.shape[0], self.action
+        assert 0 <= i < x and 0 <= j < y and k >= 0 and 0 <= s < enc.shape[0], (
+            f"action: {tuple(self.action)} outside (i < {x}, j < {y}, k >= 0, s < {enc.shape[0]})"
+        )
         return self

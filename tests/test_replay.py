@@ -270,7 +270,14 @@ def test_second_writer_is_refused(tmp_path):
         ("observation.obstacle", lambda t: t.observation.obstacle.__setitem__((0, 0, 0), -0.5)),
         ("score", lambda t: setattr(t, "score", 1.5)),
         ("meta.seed", lambda t: setattr(t, "meta", dataclasses.replace(t.meta, seed=1.5))),
-        ("record does not match", lambda t: setattr(t.observation, "tsdf", t.observation.tsdf[:, :, :-1])),
+        ("observation.obstacle: (48, 48, 16) float32, expected (48, 48, 15)",
+         lambda t: setattr(t.observation, "tsdf", t.observation.tsdf[:, :, :-1])),
+        ("observation.tsdf: (48, 48, 16) float64",
+         lambda t: setattr(t.observation, "tsdf", t.observation.tsdf.astype(np.float64))),
+        ("observation.valid", lambda t: setattr(t.observation, "valid", t.observation.valid.astype(np.uint8))),
+        ("action: (48, ", lambda t: setattr(t, "action", (48,) + tuple(t.action[1:]))),
+        ("gripper_encoding: 4 openings, meta.openings has 5",
+         lambda t: setattr(t, "gripper_encoding", t.gripper_encoding[:-1])),
     ],
 )
 def test_bad_trial_is_refused_and_writes_nothing(tmp_path, field, mutate):
