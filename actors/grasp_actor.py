@@ -76,11 +76,14 @@ class EpisodeReport:
 class GraspActor:
     """One simulation, one model copy, one seeded generator; inserts trials through a replay client."""
 
-    def __init__(self, cfg: Config, actor_id: int, seed: int, replay) -> None:
+    def __init__(self, cfg: Config, actor_id: int, seed: int, replay, stream: int = 0, first_episode: int = 0) -> None:
+        """``stream`` picks the random stream of this (seed, actor_id): 0 for a new run; a resumed
+        run passes the trials its earlier parts committed, so that it does not draw their grippers,
+        openings and scenes again. ``first_episode`` numbers this actor's first episode."""
         torch.set_num_threads(cfg.actor.torch_threads)
         self.cfg = cfg
         self.actor_id = int(actor_id)
-        seq = np.random.SeedSequence([int(seed), self.actor_id])
+        seq = np.random.SeedSequence([int(seed), self.actor_id] + ([int(stream)] if stream else []))
         self.seed_sequence = seq
         self.rng = np.random.default_rng(seq)
         self.sim = Simulation(cfg, seed=int(seq.generate_state(1)[0]))
@@ -88,7 +91,7 @@ class GraspActor:
         self.encoder = GripperEncoder(cfg.gripper_grid)
         self.model = build_model(cfg).eval()
         self.version = -1
-        self.episode = 0
+        self.episode = int(first_episode)
         self.two_finger, self.multi_finger = split_grippers(cfg)
 
     def set_weights(self, version: int, state: dict) -> None:

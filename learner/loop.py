@@ -83,6 +83,9 @@ class LearnerProcess:
         self.learner = Learner(cfg, self.replay, device=device, seed=seed)
         ckpt = checkpoint_path(self.run_dir)
         self.resumed_from = None
+        self.next_episode: list[int] = []
+        """Per actor id, the number its next episode takes: recorded in every checkpoint, so that a
+        resumed run numbers its episodes after the earlier parts' ((actor_id, episode_id) is unique)."""
         self.init_source: dict | None = None
         """Where a fine-tuned run's first weights came from (learner.init_weights, the file: inside
         the package for a shipped model, else absolute; its step and version); written into every
@@ -90,6 +93,9 @@ class LearnerProcess:
         if ckpt.is_file():
             c = read_checkpoint(ckpt)
             ls = dict(c.extra["learner"])
+            sampler = ls.pop("replay_sampler", None)
+            if sampler is not None:  # checkpoints before it was kept: a stream from the seed
+                self.replay.set_sampler_state(sampler)
             trained = ls.pop("trained_model", None)
             averaged = trained is not None
             self.learner.load_state_dict({
@@ -97,6 +103,7 @@ class LearnerProcess:
                 "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
             })
             self.resumed_from = c.step
+            self.next_episode = [int(e) for e in c.extra.get("replay", {}).get("next_episode", [])]
             self.init_source = portable_init_source(c.extra.get("init_weights"))
         else:
             start = initial_weights(cfg)
@@ -153,13 +160,21 @@ class LearnerProcess:
             pass
         return version, [state]
 
-    def checkpoint(self, epsilon: float, inserted: int, snapshot: bool = False) -> str:
+    def checkpoint(
+        self, epsilon: float, inserted: int, snapshot: bool = False, next_episode: list[int] | None = None
+    ) -> str:
         """Write RUN/checkpoints/latest.pt atomically; returns its path. With ``snapshot`` (and
         ``learner.keep_snapshots``) also RUN/checkpoints/step-NNNNNNN.pt: the weights, without the
-        optimiser and learner state."""
+        optimiser and learner state. ``next_episode``: the actors' next episode numbers (the
+        driver's; kept from the last call or the resumed checkpoint when None)."""
+        if next_episode is not None:
+            self.next_episode = [int(e) for e in next_episode]
         ls = self.learner.state_dict()
-        replay = {"inserted": int(inserted), "shards": self.cfg.replay.shards}
-        learner_state = {"samples": ls["samples"], "history": ls["history"], "generator": ls["generator"]}
+        replay = {"inserted": int(inserted), "shards": self.cfg.replay.shards, "next_episode": list(self.next_episode)}
+        learner_state = {
+            "samples": ls["samples"], "history": ls["history"], "generator": ls["generator"],
+            "replay_sampler": self.replay.sampler_state(),
+        }
         if ls["average"] is not None:
             # The file's model is the average (what planners and evaluations load); resuming
             # continues from the trained weights.
@@ -202,6 +217,12 @@ class LearnerProcess:
         label = "success" if float(batch.label[0]) > 0.5 else "failure"
         title = f"step {self.learner.stats.steps}, replayed trial ({label}), executed opening"
         return self.learner.stats.steps, score_maps_image(probs[0, 0].cpu().numpy(), heightmap, self.cfg, mask=mask, title=title)
+
+    def first_episodes(self, n_actors: int) -> list[int]:
+        """The first episode number of each actor id in this part of the run: for ``n_actors`` ids
+        at least, and for every id the checkpoint recorded (a part with fewer actors keeps the
+        numbers of the others for a later part)."""
+        return self.next_episode + [0] * max(0, n_actors - len(self.next_episode))
 
     def history(self) -> list:
         """(step, loss) pairs since the run started."""
@@ -312,7 +333,11 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
     """
     shards = open_local_shards(run_dir / "replay", cfg)
     learner = LearnerProcess(cfg, shards, str(run_dir), seed=cfg.run.seed)
-    actor = GraspActor(cfg, actor_id=0, seed=cfg.run.seed, replay=ReplayClient(shards, cfg, seed=cfg.run.seed + 1))
+    episodes = learner.first_episodes(1)
+    actor = GraspActor(
+        cfg, actor_id=0, seed=cfg.run.seed, replay=ReplayClient(shards, cfg, seed=cfg.run.seed + 1),
+        stream=learner.inserted(), first_episode=episodes[0],
+    )
     progress = Progress(cfg, run_dir, quiet)
     t0 = last_ckpt = time.time()
     stats = learner.train(0, force_publish=True)
@@ -336,13 +361,13 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
             inserted = stats["inserted"]
             progress.tick(inserted, stats, eps)
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                learner.checkpoint(eps, inserted, snapshot=True)
+                learner.checkpoint(eps, inserted, snapshot=True, next_episode=[actor.episode] + episodes[1:])
                 progress.add_score_maps(learner.score_map_image())
                 last_ckpt = time.time()
     finally:
         actor.close()
         inserted = learner.inserted()
-        learner.checkpoint(epsilon_at(cfg, inserted), inserted)
+        learner.checkpoint(epsilon_at(cfg, inserted), inserted, next_episode=[actor.episode] + episodes[1:])
         progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
         progress.close()
         for s in shards:
@@ -353,15 +378,14 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
 class ActorProcess:
     """A GraspActor inside a Ray actor process: fetches weights by reference when they are newer."""
 
-    def __init__(self, cfg: Config, actor_id: int, seed: int, shards: list) -> None:
+    def __init__(self, cfg: Config, actor_id: int, seed: int, shards: list, stream: int = 0) -> None:
         import ray
 
         incarnation = 0
         if ray.get_runtime_context().was_current_actor_reconstructed:
             incarnation = time.time_ns() % (2**31)  # a restarted actor must not replay its old random stream
-        self.actor = GraspActor(
-            cfg, actor_id, seed + 7919 * incarnation, ReplayClient(shards, cfg, seed=seed * 1000 + actor_id + incarnation)
-        )
+        replay = ReplayClient(shards, cfg, seed=seed * 1000 + actor_id + incarnation)
+        self.actor = GraspActor(cfg, actor_id, seed + 7919 * incarnation, replay, stream=stream)
         self.incarnation = incarnation
 
     def run_episodes(self, n: int, epsilon: float, version: int, box: list, first_episode: int) -> list[EpisodeReport]:
@@ -401,16 +425,20 @@ def run_distributed(
     # On a local instance the actors take n_actors of this machine's cores; the learner gets the rest.
     threads = None if address else max(1, (os.cpu_count() or 1) - n_actors)
     learner = learner_cls.remote(cfg, shards, str(run_dir), cfg.run.seed, threads)
+    # A resumed run: a new random stream per actor (keyed by the trials committed so far), and
+    # episode numbers after those its checkpoint recorded.
+    stream = ray.get(learner.inserted.remote())
+    next_episode = ray.get(learner.first_episodes.remote(n_actors))
     actor_cls = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)(ActorProcess)
     actors = [
-        actor_cls.options(scheduling_strategy="SPREAD").remote(cfg, i, cfg.run.seed, shards) for i in range(n_actors)
+        actor_cls.options(scheduling_strategy="SPREAD").remote(cfg, i, cfg.run.seed, shards, stream)
+        for i in range(n_actors)
     ]
     progress = Progress(cfg, run_dir, quiet, dashboard)
     replay = ReplayClient(shards, cfg, seed=cfg.run.seed + 2)  # the driver's view: counts only
     stats = ray.get(learner.train.remote(0, force_publish=True))
     version, box = stats["weights"]
     published, restarts = 1, 0
-    next_episode = [0] * n_actors
     pending: dict = {}
 
     inserted = stats["inserted"]
@@ -456,7 +484,8 @@ def run_distributed(
                 submit(a)
             progress.tick(inserted, stats, epsilon_at(cfg, inserted))
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, snapshot=True))
+                ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, snapshot=True,
+                                                  next_episode=next_episode))
                 progress.add_score_maps(ray.get(learner.score_map_image.remote()))
                 last_ckpt = time.time()
     finally:
@@ -474,7 +503,7 @@ def run_distributed(
                 print(f"actor {a}: close failed at shutdown ({type(e).__name__})", flush=True)
         stats = ray.get(learner_future)
         inserted = ray.get(learner.inserted.remote())
-        ckpt = ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted))
+        ckpt = ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, next_episode=next_episode))
         history = ray.get(learner.history.remote())
         progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
         progress.close()

@@ -152,6 +152,14 @@ class ReplayClient:
     def num_shards(self) -> int:
         return len(self._shards)
 
+    def sampler_state(self) -> dict:
+        """State of the generator that draws sample batches (kept in learner checkpoints)."""
+        return self._rng.bit_generator.state
+
+    def set_sampler_state(self, state: dict) -> None:
+        """Continue drawing batches from a :meth:`sampler_state`."""
+        self._rng.bit_generator.state = state
+
     # ----------------------------------------------------------------------------------
     # Requests in flight
     # ----------------------------------------------------------------------------------

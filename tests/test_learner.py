@@ -12,6 +12,7 @@ from common.config import ConfigError, load_config
 from learner.learner import Learner, epsilon_at, precision_autocast
 from learner.rate_limit import SamplesPerInsert
 from replay.client import ReplayClient, open_local_shards
+from replay.shard import ReplayShard, find_shards
 from replay.synthetic import FixedBatchReplay, synthetic_trial
 
 
@@ -208,6 +209,22 @@ def test_resume_trains_at_the_configured_learning_rate(filled_replay, tmp_path):
     assert all(torch.equal(state[k]["exp_avg"], m) for k, m in moments.items())
     same = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
     assert [g["lr"] for g in same.learner.optimizer.param_groups] == [cfg.learner.lr] * len(groups)
+
+
+def test_resumed_learner_draws_the_batches_the_uninterrupted_one_draws(filled_replay, tmp_path):
+    """The checkpoint keeps the replay sampler's generator: after a resume the learner samples the
+    trials it would have sampled had the run gone on (not the first part's draws again)."""
+    from learner.loop import LearnerProcess
+
+    cfg, client = filled_replay
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    first = [proc.replay.sample(cfg.learner.batch_size).index.tolist() for _ in range(3)]
+    proc.checkpoint(epsilon=0.5, inserted=12)
+    resumed = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    after = [resumed.replay.sample(cfg.learner.batch_size).index.tolist() for _ in range(3)]
+    going_on = [proc.replay.sample(cfg.learner.batch_size).index.tolist() for _ in range(3)]
+    assert after == going_on and after != first, (first, after, going_on)
 
 
 def test_bf16_precision_matches_fp32_loss_and_keeps_float32_weights(filled_replay):
@@ -479,3 +496,38 @@ def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_re
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and f"{run / 'replay' / 'zarr.json'}: unreadable group metadata" in err[0], err
     assert _files(run) == {run / "replay" / "zarr.json": b"{"}
+
+
+
+def _episodes(run):
+    """{(actor_id, episode_id): (gripper, scale, openings, episode seed)} of every stored trial."""
+    out = {}
+    for path in find_shards(run / "replay"):
+        shard = ReplayShard(path, read_only=True)
+        for t in shard.visible_ids():
+            m = shard.get_trial(int(t)).meta
+            draw = (m.gripper, m.gripper_scale, m.openings, m.seed)
+            assert out.setdefault((m.actor_id, m.episode_id), draw) == draw, "one episode, one draw"
+        shard.close()
+    return out
+
+
+def test_a_resumed_run_draws_new_episodes_and_numbers_them_after_the_first_part(tmp_path):
+    """A resumed part seeds its actor with a new stream (keyed by the trials committed so far) and
+    numbers its episodes after those the checkpoint recorded: it does not repeat the first part's
+    grippers, openings and scene seeds, and (actor_id, episode_id) stays one episode."""
+    from common.checkpoint import read_checkpoint
+    from learner.loop import checkpoint_path
+    from learner.run import cli
+
+    run = tmp_path / "run"
+    assert cli(["--config", "tiny", "--run-dir", str(run), "--actors", "0", "--max-trials", "2", "--quiet"]) == 0
+    first = _episodes(run)
+    recorded = read_checkpoint(checkpoint_path(run)).extra["replay"]["next_episode"]
+    assert recorded == [max(e for _, e in first) + 1], (recorded, sorted(first))
+    assert cli(["--resume", "--run-dir", str(run), "--actors", "0", "--max-trials", "4", "--quiet"]) == 0
+    both = _episodes(run)
+    second = {k: v for k, v in both.items() if k not in first}
+    assert second and min(e for _, e in second) == recorded[0], (sorted(first), sorted(second))
+    assert all(both[k] == v for k, v in first.items()), "the first part's trials are as they were"
+    assert not set(first.values()) & set(second.values()), "a resumed part drew an episode of the first part again"
