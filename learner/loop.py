@@ -501,13 +501,20 @@ def run_distributed(
                 ray.get(handle.close.remote(), timeout=60)
             except Exception as e:  # noqa: BLE001
                 print(f"actor {a}: close failed at shutdown ({type(e).__name__})", flush=True)
-        stats = ray.get(learner_future)
-        inserted = ray.get(learner.inserted.remote())
-        ckpt = ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, next_episode=next_episode))
-        history = ray.get(learner.history.remote())
-        progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
-        progress.close()
-        ray.shutdown()
+        try:
+            stats = ray.get(learner_future)
+        except (RayActorError, RayTaskError) as e:
+            # A learner chunk that failed (the error that ended the loop, or one at shutdown): the
+            # learner, alive or restarted from latest.pt, still writes the final checkpoint.
+            print(f"learner: last chunk failed ({type(e).__name__}); writing the checkpoint", flush=True)
+        try:
+            inserted = ray.get(learner.inserted.remote())
+            ckpt = ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, next_episode=next_episode))
+            history = ray.get(learner.history.remote())
+            progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
+        finally:
+            progress.close()
+            ray.shutdown()
     (Path(run_dir) / "history.json").write_text(json.dumps(history))
     return _summary(
         run_dir, inserted, stats, progress,

@@ -91,6 +91,45 @@ def test_two_actor_run_collects_trains_and_publishes(tmp_path):
     print(f"2-actor tiny run: {summary['trials']} trials in {elapsed:.1f} s")
 
 
+FAILING_LEARNER = """
+import learner.loop as loop
+
+_train = loop.LearnerProcess.train
+
+
+def train(self, max_steps, *args, **kwargs):
+    if self.learner.stats.steps > 0:
+        raise RuntimeError("learner failure for the test")
+    return _train(self, max_steps, *args, **kwargs)
+
+
+loop.LearnerProcess.train = train
+"""
+"""A sitecustomize for the launcher and every Ray process it starts: a learner whose chunk fails
+once it has trained."""
+
+
+def test_a_failing_learner_still_lets_the_actors_finish_and_writes_the_final_checkpoint(tmp_path):
+    """A learner chunk that raises ends the run with that error, but first the actors finish
+    their episodes and the learner writes the final checkpoint (the only one here: periodic
+    checkpoints are an hour apart), which counts every committed trial."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(FAILING_LEARNER)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(hook), str(ROOT)]))
+    run_dir = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "launcher", "--actors", "2", "--config", "tiny", "--run-dir", str(run_dir), "--quiet",
+         "--max-trials", "200", "--set", "learner.checkpoint_minutes=60"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "learner failure for the test" in out, out[-3000:]
+    assert "learner: last chunk failed (RayTaskError" in out, out[-3000:]
+    ckpt = read_checkpoint(run_dir / "checkpoints" / "latest.pt")
+    assert ckpt.step >= 1 and ckpt.extra["replay"]["inserted"] == _committed(run_dir) > 0
+
+
 def test_bad_config_value_is_one_line(tmp_path, capsys):
     rc = cli(["--actors", "0", "--config", "tiny", "--set", "learner.lr=fast", "--run-dir", str(tmp_path / "r")])
     err = capsys.readouterr().err.strip().splitlines()
