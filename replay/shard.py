@@ -31,6 +31,7 @@ from __future__ import annotations
 import fcntl
 import heapq
 import os
+import shutil
 import time
 import uuid
 import warnings
@@ -204,6 +205,8 @@ def find_shards(path: str | Path) -> list[Path]:
         return [p]
     shards = []
     for child in sorted(p.iterdir()):
+        if child.name.startswith("."):
+            continue  # a shard being created (see ReplayShard._create), or another hidden folder
         a = read_kind(child) if child.is_dir() else None
         if a is not None and a.get("kind") == SHARD_KIND:
             shards.append(child)
@@ -404,8 +407,13 @@ class ReplayShard:
             attrs["slots"], attrs["table_rows"], cfg.scene_grid.shape, tuple(cfg.gripper_grid.shape),
             rc.chunk_trials, rc.tsdf_levels,
         )
-        self.path.mkdir(parents=True, exist_ok=True)
-        group = zarr.create_group(str(self.path))
+        # Built beside its place under a hidden name and renamed into place when complete: a crash
+        # during creation leaves no half-made shard that a restart or --resume could not open.
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        staging = self.path.with_name(f".{self.path.name}.creating-{os.getpid()}")
+        if staging.exists():
+            shutil.rmtree(staging)
+        group = zarr.create_group(str(staging))
         compressors = [ZstdCodec(level=rc.compression_level), Crc32cCodec()]
         for spec in specs:
             group.create_array(
@@ -420,7 +428,12 @@ class ReplayShard:
                 chunk_key_encoding={"name": "default", "separator": "."},
             )
         group["commit"][:] = np.array([0, 0], np.int64)
-        group.attrs[ATTR_KEY] = attrs  # last: a group without it is an incomplete creation
+        group.attrs[ATTR_KEY] = attrs
+        try:
+            os.rename(staging, self.path)
+        except OSError as e:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise ReplaySchemaError(f"{self.path}: cannot create a shard here ({e.strerror})") from None
 
     def _open(self, cfg: Config | None, shard_index: int, num_shards: int) -> None:
         p = self.path

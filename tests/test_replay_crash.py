@@ -15,9 +15,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
+import zarr
 
 from replay.schema import ReplayError, max_errors
-from replay.shard import ReplayShard
+from replay.shard import ReplayShard, ensure_root, find_shards
 from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
 
@@ -177,3 +179,37 @@ def test_reader_opens_while_writer_appends(tmp_path):
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(30)
     print(json.dumps({"trials_checked": len(seen), "evicted_during_read": evicted_during_read}))
+
+
+
+class _Crash(Exception):
+    """Stands for the process dying at that point."""
+
+
+def test_a_crash_while_a_shard_is_created_leaves_nothing_a_restart_cannot_open(tmp_path, monkeypatch):
+    """A shard is built under a hidden name and renamed into place when complete: a crash part way
+    (at its third array, or at the rename) leaves no folder at the shard's place, the replay root
+    lists no half-made shard, and the next start creates it and stores trials."""
+    cfg = tiny_cfg()
+    root = ensure_root(tmp_path / "replay", 1)
+    path = root / "shard_000"
+    real_create_array = zarr.Group.create_array
+
+    def third_array_crashes(self, *args, **kwargs):
+        if len(list(self.array_keys())) == 2:
+            raise _Crash
+        return real_create_array(self, *args, **kwargs)
+
+    def rename_crashes(*args):
+        raise _Crash
+
+    for target, crash in (("zarr.Group.create_array", third_array_crashes), ("replay.shard.os.rename", rename_crashes)):
+        with monkeypatch.context() as m:
+            m.setattr(target, crash)
+            with pytest.raises(_Crash):
+                ReplayShard(path, cfg)
+        assert not path.exists() and find_shards(root) == [], target
+    shard = ReplayShard(path, cfg)
+    shard.insert(make_trial(cfg, 0))
+    shard.close()
+    assert find_shards(root) == [path] and len(ReplayShard(path, read_only=True)) == 1
