@@ -481,6 +481,8 @@ def test_calibrated_adagrasp_chooses_the_reliable_gripper(small, calibration_run
         ({}, ["--policy", "fix-gripper"], "--calibration: only --policy adagrasp compares grippers"),
         ({"policy": "adagrasp"}, [], "policy: a calibration is fitted to fix-gripper trials"),
         ({}, ["--seed", "5"], "scene_seeds: the calibration trials share 2 scenes with this evaluation"),
+        ({"scene": "multi", "sim": ("scene", "multi")}, ["--seed", "5"],
+         "scene_seeds: the calibration trials share 2 scenes with this evaluation"),
         ({"checkpoint_sha256": "0" * 64}, [], "checkpoint_sha256: fitted with network and weights 000000000000..."),
         ({"checkpoint_sha256": None, "checkpoint_version": 8}, [],
          "checkpoint_version: fitted with weights v8, the checkpoint holds v7"),
