@@ -182,12 +182,18 @@ def label_scene(sim: Simulation) -> tuple[bool, tuple[int, ...], tuple[int, ...]
 
 
 def remove_finished(sim: Simulation, lifted) -> None:
-    """Remove the lifted bodies and every object whose centre left the scene grid (x, y)."""
+    """Remove the lifted bodies, every object whose centre left the scene grid (x, y) and, with
+    ``sim.target_bound`` "fence", every target whose centre left the fence square (x, y) that
+    grasp centres are clipped to."""
     grid = sim.grid
     gone = set(lifted)
+    lim = sim.cfg.sim.fence_half_extent if sim.cfg.sim.target_bound == "fence" else None
+    targets = set(sim.targets)
     for b in list(sim.objects):
         x, y, _ = sim.body_position(b)
         if not (grid.x_range[0] <= x <= grid.x_range[1] and grid.y_range[0] <= y <= grid.y_range[1]):
+            gone.add(b)
+        elif lim is not None and b in targets and max(abs(x - sim.centre[0]), abs(y - sim.centre[1])) > lim:
             gone.add(b)
     sim.remove_objects(sorted(gone))
 

@@ -137,6 +137,11 @@ class SimConfig:
     fence_half_extent: float = 0.128
     """Inner half-size (m) of the square fence that holds objects while they drop; grasp centres are
     clipped to this square (the paper's workspace bounds)."""
+    target_bound: str = "scene_grid"
+    """Where a target pushed away leaves the scene: "scene_grid" when its centre leaves the scene
+    grid's x, y range (this project's rule, and that of every result written before this key), or
+    "fence" when it leaves the fence square grasps are clipped to (the paper's rule: a target in
+    between is reached only by clipped grasps). Objects outside the scene grid always leave."""
     fence_height: float = 0.2
     """Height (m) of the drop fence walls."""
     drop_gap: float = 0.01
@@ -362,6 +367,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "learner.device": ("auto", "cpu", "cuda"),
     "learner.precision": ("fp32", "bf16"),
     "actor.policy": ("adagrasp", "fix-gripper", "fix-config", "random", "heuristic"),
+    "sim.target_bound": ("scene_grid", "fence"),
 }
 
 _RANGES: dict[str, tuple[float, float]] = {

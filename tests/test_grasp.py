@@ -4,7 +4,15 @@ import numpy as np
 import pybullet
 import pytest
 
-from actors.grasp import FAILURE_MODES, GraspOutcome, execute_grasp, grasp_pose, gripper_reach, label_scene
+from actors.grasp import (
+    FAILURE_MODES,
+    GraspOutcome,
+    execute_grasp,
+    grasp_pose,
+    gripper_reach,
+    label_scene,
+    remove_finished,
+)
 from actors.simulation import Simulation
 from common.config import load_config
 from common.geometry import cell_to_world, world_to_cell
@@ -84,6 +92,24 @@ def test_label_rules(default_cfg):
         pybullet.resetBasePositionAndOrientation(ob, [0.0, 0.06, 0.015], [0, 0, 0, 1], physicsClientId=sim.client)
         lift(t2)
         assert label_scene(sim) == (False, (t1, t2), ()), "two lifted targets fail the grasp"
+
+
+@pytest.mark.parametrize("bound", ["scene_grid", "fence"])
+def test_targets_leave_at_the_configured_bound(default_cfg, bound):
+    """A target between the fence square (grasps are clipped to it) and the scene grid's edge stays
+    with sim.target_bound "scene_grid" and leaves with "fence" (the paper's rule); an obstacle there
+    stays either way; anything beyond the scene grid leaves either way."""
+    cfg = load_config("default", overrides=[f"sim.target_bound={bound}"])
+    with Simulation(cfg, seed=0) as sim:
+        between = sim.add_box([0.03] * 3, [0.165, 0.0, 0.015])
+        corner = sim.add_box([0.03] * 3, [-0.14, 0.14, 0.015])
+        inside = sim.add_box([0.03] * 3, [0.12, -0.12, 0.015])
+        obstacle = sim.add_box([0.03] * 3, [0.0, -0.165, 0.015], role="obstacle")
+        beyond = sim.add_box([0.03] * 3, [0.2, 0.0, 0.015])
+        remove_finished(sim, ())
+        gone = {between, corner} if bound == "fence" else set()
+        assert set(sim.objects) == {between, corner, inside, obstacle} - gone, (bound, sim.objects)
+        assert beyond not in sim.objects
 
 
 def test_grasping_an_obstacle_fails(default_cfg):
