@@ -59,6 +59,7 @@ from actors.compare import (
 )
 from actors.evaluate import EvaluationError, check_output_path, read_result, row_label, write_json
 from common.calibration import Calibration, calibration_from_result, file_sha256
+from common.config import SimConfig, to_dict
 
 RUNS_FORMAT = "adagrasp-scale-run-comparison/1"
 """Value of the ``format`` key of a run comparison JSON."""
@@ -296,10 +297,14 @@ def _sim(path: str, summary: dict) -> dict | None:
 
 
 def _check_sim(path: str, summary: dict, first_path: str, first: dict, ignore: tuple[str, ...] = ()) -> None:
-    """The two results were simulated alike (the same ``config.sim`` but for the keys in ``ignore``).
-    One line naming the keys otherwise."""
-    mine, theirs = ({k: v for k, v in sim.items() if k not in ignore} if sim is not None else None
-                    for sim in (_sim(path, summary), _sim(first_path, first)))
+    """The two results were simulated alike (the same ``config.sim`` but for the keys in ``ignore``;
+    where both record it, a key added to the config since one was written counts at its default, as
+    a checkpoint's config is read). One line naming the keys otherwise."""
+    sims = (_sim(path, summary), _sim(first_path, first))
+    if None not in sims:
+        defaults = to_dict(SimConfig())
+        sims = tuple({**defaults, **sim} for sim in sims)
+    mine, theirs = ({k: v for k, v in sim.items() if k not in ignore} if sim is not None else None for sim in sims)
     if mine != theirs:
         differ = sorted(k for k in (mine or {}).keys() | (theirs or {}).keys()
                         if (mine or {}).get(k) != (theirs or {}).get(k))

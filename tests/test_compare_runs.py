@@ -389,6 +389,28 @@ def test_paired_needs_one_model_per_pair_and_names_the_key_that_differs(tmp_path
         cr.runs_cli(cli_args(digests, same_name, "--paired"))
 
 
+def test_a_sim_key_added_since_a_file_was_written_counts_at_its_default(tmp_path):
+    """Files written before sim.target_bound existed compare with files that record its default,
+    and are refused, naming it, against files that record another value."""
+    rng = np.random.default_rng(11)
+    a, b = make_runs(tmp_path, "a", "fix-gripper", 2, rng), make_runs(tmp_path, "b", "fix-gripper", 2, rng)
+    old_sim = {"solver_iterations": 300}
+
+    def with_sim(runs, sim):
+        for files in runs:
+            for path in files:
+                data = json.load(open(path))
+                json.dump({**data, "config": {"sim": sim}}, open(path, "w"))
+
+    with_sim(a, old_sim)
+    with_sim(b, {**old_sim, "target_bound": "scene_grid"})
+    cr.runs_cli(cli_args(a, b))
+    with_sim(b, {**old_sim, "target_bound": "fence"})
+    with pytest.raises(ev.EvaluationError, match=r"b0\.json: config\.sim: differs from .*a0\.json in target_bound: "
+                                                 r"not simulated alike"):
+        cr.runs_cli(cli_args(a, b))
+
+
 def test_every_file_is_one_cell_of_grippers(tmp_path):
     """adagrasp choosing among other grippers (another gripper set) is another cell."""
     rng = np.random.default_rng(11)
