@@ -579,15 +579,22 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             value = yaml.safe_load(raw)
         except yaml.YAMLError:
             value = raw
-        nested: dict = {}
-        cur = nested
-        parts = key.strip().split(".")
-        for part in parts[:-1]:
-            cur = cur.setdefault(part, {})
-        cur[parts[-1]] = value
-        _apply(cfg, nested, "--set")
+        set_value(cfg, key.strip(), value, "--set")
     _cross_checks(cfg, "--set" if overrides else str(path or "<defaults>"))
     return cfg
+
+
+def set_value(cfg: Config, key: str, value: Any, source: str) -> None:
+    """Set the dotted ``key`` to ``value`` as a YAML file or ``--set`` would: coerced to the field's
+    type and checked against its range or choices; ConfigError in one line naming ``source`` (a
+    command-line flag, say) and the key otherwise. Constraints between fields are load_config's."""
+    nested: dict = {}
+    cur = nested
+    parts = key.split(".")
+    for part in parts[:-1]:
+        cur = cur.setdefault(part, {})
+    cur[parts[-1]] = value
+    _apply(cfg, nested, source)
 
 
 def to_dict(cfg: Any) -> dict:

@@ -170,6 +170,27 @@ def test_resume_refuses_a_config_file_and_an_empty_run_config(tmp_path, capsys):
     assert sorted(os.listdir(run_dir)) == ["config.yaml"]
 
 
+@pytest.mark.parametrize("flag, value, key", [
+    ("--max-trials", "-5", "run.max_trials"),
+    ("--max-minutes", "-1", "run.max_minutes"),
+    ("--shards", "0", "replay.shards"),
+])
+def test_a_limit_flag_out_of_range_is_one_line_and_leaves_the_run_as_it_was(tmp_path, capsys, flag, value, key):
+    """--max-trials, --max-minutes and --shards are checked like their config keys before anything
+    is written: a resumed run's config.yaml keeps its values (a -5 written there would refuse every
+    later resume), and a new run leaves no folder."""
+    run_dir = tmp_path / "r"
+    run_dir.mkdir()
+    save_config(load_config("tiny"), run_dir / "config.yaml")
+    before = (run_dir / "config.yaml").read_bytes()
+    for argv in (["--resume", "--run-dir", str(run_dir)], ["--config", "tiny", "--run-dir", str(tmp_path / "new")]):
+        rc = cli([*argv, "--actors", "0", flag, value])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and len(err) == 1 and err[0].startswith(f"error: {flag}: {key}: expected a value in"), err
+    assert (run_dir / "config.yaml").read_bytes() == before and sorted(os.listdir(run_dir)) == ["config.yaml"]
+    assert not (tmp_path / "new").exists()
+
+
 def test_resumed_run_summary_keeps_the_earlier_parts(tmp_path, capsys):
     path = tmp_path / "summary.json"
     first = {"trials": 10, "episodes": 3, "weights_published": 2}
