@@ -31,6 +31,7 @@ from __future__ import annotations
 import fcntl
 import heapq
 import os
+import re
 import shutil
 import time
 import uuid
@@ -207,6 +208,7 @@ def find_shards(path: str | Path) -> list[Path]:
     for child in sorted(p.iterdir()):
         if child.name.startswith("."):
             continue  # a shard being created (see ReplayShard._create), or another hidden folder
+        _refuse_damaged_shard(child)
         a = read_kind(child) if child.is_dir() else None
         if a is not None and a.get("kind") == SHARD_KIND:
             shards.append(child)
@@ -251,6 +253,18 @@ def check_root(root: str | Path, num_shards: int) -> bool:
     return True
 
 
+def _refuse_damaged_shard(path: Path) -> None:
+    """One line when ``path`` is a shard's folder (shard_NNN) that holds files but no zarr.json: its
+    trials cannot be read, and a new shard cannot be created over them."""
+    if re.fullmatch(r"shard_\d+", path.name) and path.is_dir() and not (path / "zarr.json").is_file():
+        held = sum(1 for f in path.rglob("*") if f.is_file())
+        if held:
+            raise ReplaySchemaError(
+                f"{path}/zarr.json: missing, but the shard folder holds {held} files (damaged; move it away to "
+                "start that shard empty)"
+            )
+
+
 def check_shards(root: str | Path, cfg: Config) -> None:
     """Check the replay root (:func:`check_root`), then open the shards that exist under ``root``
     read-only with ``cfg`` and close them.
@@ -267,6 +281,7 @@ def check_shards(root: str | Path, cfg: Config) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ReplayCorruptWarning)
         for k in range(n):
+            _refuse_damaged_shard(shard_path(root, k))
             if (shard_path(root, k) / "zarr.json").is_file():
                 ReplayShard(shard_path(root, k), cfg, shard_index=k, num_shards=n, read_only=True).close()
 

@@ -19,7 +19,7 @@ import pytest
 import zarr
 
 from replay.schema import ReplayError, max_errors
-from replay.shard import ReplayShard, ensure_root, find_shards
+from replay.shard import ReplayShard, check_shards, ensure_root, find_shards
 from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
 
@@ -213,3 +213,24 @@ def test_a_crash_while_a_shard_is_created_leaves_nothing_a_restart_cannot_open(t
     shard.insert(make_trial(cfg, 0))
     shard.close()
     assert find_shards(root) == [path] and len(ReplayShard(path, read_only=True)) == 1
+
+
+def test_a_shard_folder_that_lost_its_zarr_json_is_one_line_for_readers_and_resume(tmp_path):
+    """A shard_NNN folder holding chunk files but no zarr.json is refused in one line by the replay
+    listing (which skipped it, dropping its trials without a word) and by the resume check (where
+    creating a shard over it failed), and nothing is written."""
+    cfg = tiny_cfg(shards=2)
+    root = ensure_root(tmp_path / "replay", 2)
+    for k in range(2):
+        shard = ReplayShard(root / f"shard_00{k}", cfg, shard_index=k, num_shards=2)
+        shard.insert(make_trial(cfg, k))
+        shard.close()
+    (root / "shard_001" / "zarr.json").unlink()
+    before = sorted(p for p in root.rglob("*"))
+    for call in (lambda: find_shards(root), lambda: check_shards(root, cfg)):
+        with pytest.raises(ReplayError) as e:
+            call()
+        line = str(e.value)
+        want = f"{root / 'shard_001'}/zarr.json: missing, but the shard folder holds"
+        assert "\n" not in line and line.startswith(want), line
+    assert sorted(p for p in root.rglob("*")) == before
