@@ -479,7 +479,7 @@ def compare_cli(argv: list[str]) -> dict:
     args = _parser().parse_args(argv)
     if args.resamples < 1:
         raise EvaluationError(f"--resamples {args.resamples}: expected >= 1")
-    check_output_path("--json", args.json)
+    check_output_path("--json", args.json, [args.a, args.b, *(f for pair in args.also for f in pair)])
     only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
     pairs = [pair(a, read_result(a), b, read_result(b), only, args.drop_mismatched_scenes)
              for a, b in [(args.a, args.b), *args.also]]

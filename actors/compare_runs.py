@@ -731,7 +731,7 @@ def runs_cli(argv: list[str]) -> dict:
     args = _parser().parse_args(argv)
     if args.draws < 1:
         raise EvaluationError(f"--draws {args.draws}: expected >= 1")
-    check_output_path("--json", args.json)
+    check_output_path("--json", args.json, [*args.a, *args.b])
     only = [g.strip() for g in args.gripper.split(",")] if args.gripper else None
     split = [[[f.strip() for f in group.split(",")] for group in groups] for groups in (args.a, args.b)]
     runs_a, runs_b, info = run_sides(split[0], split[1], only, args.paired, args.drop_mismatched_scenes,

@@ -779,13 +779,17 @@ def write_json(path: str | Path, record) -> None:
     _write_atomic(path, json.dumps(record, indent=1) + "\n")
 
 
-def check_output_path(flag: str, path: str | None) -> None:
-    """Raise one line when ``path`` (an output of ``flag``) cannot be written, before any work is done."""
+def check_output_path(flag: str, path: str | None, inputs=()) -> None:
+    """Raise one line when ``path`` (an output of ``flag``) cannot be written, or is one of the
+    command's ``inputs`` (paths; each may be a comma-separated list), before any work is done."""
     if path is None:
         return
     target = Path(path)
     if target.is_dir():
         raise EvaluationError(f"{flag} {path}: is a directory")
+    read = {Path(p.strip()).resolve() for group in inputs if group for p in str(group).split(",") if p.strip()}
+    if target.resolve() in read:
+        raise EvaluationError(f"{flag} {path}: is one of this command's input files; it would be overwritten")
     folder = next((p for p in [target.parent, *target.parent.parents] if p.exists()), Path("."))
     if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
         raise EvaluationError(f"{flag} {path}: {folder} is not a writable directory")
@@ -849,8 +853,8 @@ def _table_parser() -> argparse.ArgumentParser:
 def evaluate(argv: list[str]) -> dict:
     """Parse ``argv``, run the evaluation, write --json / --md; returns the summary."""
     args = _parser().parse_args(argv)
-    check_output_path("--json", args.json)
-    check_output_path("--md", args.md)
+    check_output_path("--json", args.json, [args.calibration])
+    check_output_path("--md", args.md, [args.calibration, args.json])
     t0 = time.perf_counter()
     plan = make_plan(args)
     results = run_units(plan, plan.units(), actors=args.actors, address=args.address, quiet=args.quiet)
@@ -874,7 +878,7 @@ def evaluate(argv: list[str]) -> dict:
 def table(argv: list[str]) -> str:
     """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it."""
     args = _table_parser().parse_args(argv)
-    check_output_path("--md", args.md)
+    check_output_path("--md", args.md, args.results)
     from actors.compare_runs import pool_result  # imported here: actors.compare_runs builds on this module
 
     results = []

@@ -156,7 +156,7 @@ def _parser() -> argparse.ArgumentParser:
 def holm_cli(argv: list[str]) -> dict:
     """``evaluate holm``: parse ``argv``, print :func:`report`, write --json; returns the record."""
     args = _parser().parse_args(argv)
-    check_output_path("--json", args.json)
+    check_output_path("--json", args.json, args.files)
     result = correct(args.files, args.test, args.alpha)
     print(report(result), end="")
     if args.json:

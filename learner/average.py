@@ -30,8 +30,13 @@ KEPT_EXTRA = ("replay", "init_weights")
 """Keys of the last checkpoint's extra state that the average keeps (where the run was, not how to resume it)."""
 
 
-def average_checkpoints(paths: list[str | Path], out: str | Path) -> Path:
-    """Write the uniform average of the checkpoints ``paths`` (at least two) to ``out``; returns it."""
+def average_checkpoints(paths: list[str | Path], out: str | Path, force: bool = False) -> Path:
+    """Write the uniform average of the checkpoints ``paths`` (at least two) to ``out``; returns it.
+    An existing ``out`` is replaced only with ``force``, and never when it is one of ``paths``."""
+    if Path(out).resolve() in {Path(str(p)).resolve() for p in paths}:
+        raise ValueError(f"--out {out}: is one of the checkpoints averaged; it would be overwritten")
+    if Path(out).exists() and not force:
+        raise ValueError(f"--out {out}: exists (use --force to replace it)")
     if len(paths) < 2:
         raise ValueError(f"checkpoints: {len(paths)} given, at least two are needed to average")
     if len({str(p) for p in paths}) != len(paths):
@@ -71,9 +76,10 @@ def cli(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m learner.average", description=__doc__.splitlines()[0])
     ap.add_argument("checkpoints", nargs="+", help="checkpoint files (or model:NAME), oldest first")
     ap.add_argument("--out", required=True, help="checkpoint file to write")
+    ap.add_argument("--force", action="store_true", help="replace an existing --out file")
     args = ap.parse_args(argv)
     try:
-        out = average_checkpoints(args.checkpoints, args.out)
+        out = average_checkpoints(args.checkpoints, args.out, force=args.force)
     except (ValueError, OSError) as e:
         print(f"average: error: {e}", file=sys.stderr)
         return 2

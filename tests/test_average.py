@@ -88,3 +88,19 @@ def test_average_refuses_a_missing_or_reshaped_tensor(tmp_path):
     with pytest.raises(ValueError, match=f"missing.pt: model: tensor {key} is not in both"):
         average_checkpoints([a, tmp_path / "missing.pt"], tmp_path / "avg.pt")
     assert not (tmp_path / "avg.pt").exists()
+
+
+def test_average_never_overwrites_an_input_and_replaces_an_existing_file_only_with_force(tmp_path, capsys):
+    """--out naming one of the averaged checkpoints (a run's latest.pt, say) is refused, as is an
+    existing file without --force; both in one line, with every file as it was."""
+    a = _snapshot(tmp_path, 0, 10, 20)
+    b = _snapshot(tmp_path, 1, 20, 40)
+    taken = tmp_path / "taken.pt"
+    taken.write_bytes(b"mine")
+    before = {p: p.read_bytes() for p in (a, b, taken)}
+    for out, extra, needle in ((b, ["--force"], "is one of the checkpoints averaged"), (taken, [], "exists (use --force")):
+        assert cli([str(a), str(b), "--out", str(out), *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and f"--out {out}: {needle}" in err, err
+    assert {p: p.read_bytes() for p in (a, b, taken)} == before
+    assert cli([str(a), str(b), "--out", str(taken), "--force"]) == 0 and taken.read_bytes() != b"mine"

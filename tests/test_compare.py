@@ -488,3 +488,25 @@ def test_pooling_reads_a_calibration_the_same_with_or_without_its_file_hash(tmp_
 def test_help_prints_the_interval_text_as_written():
     text = cmp._parser().format_help()
     assert "95% interval" in " ".join(text.split()) and "%%" not in text
+
+
+@pytest.mark.parametrize("argv", [
+    ["table", "{a}", "{b}", "--md", "{a}"],
+    ["compare", "{a}", "{b}", "--json", "{b}"],
+    ["compare", "{a}", "{b}", "--also", "{c}", "{a}", "--json", "{c}"],
+    ["runs", "--a", "{a},{c}", "--a", "{b}", "--b", "{b}", "--b", "{c}", "--json", "{c}"],
+    ["holm", "{a}", "{b}", "--json", "{a}"],
+])
+def test_an_output_that_is_one_of_the_inputs_is_refused_before_anything_is_read(tmp_path, capsys, argv):
+    """--json / --md naming one of the command's own input files (through another spelling of its
+    path, too) is one line, and the file is left as it was."""
+    files = {}
+    for name in "abc":
+        files[name] = tmp_path / f"{name}.json"
+        files[name].write_text(json.dumps({"format": "not read", "name": name}))
+    spelled = {name: str(tmp_path / "." / f"{name}.json") if name == "c" else str(p) for name, p in files.items()}
+    before = {p: p.read_bytes() for p in files.values()}
+    rc = ev.cli([arg.format(**spelled) for arg in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "is one of this command's input files; it would be overwritten" in err[0], err
+    assert {p: p.read_bytes() for p in files.values()} == before
