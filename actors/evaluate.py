@@ -732,8 +732,14 @@ def table_markdown(results: list[tuple[str, dict]], runs: bool = False) -> str:
     return "\n".join(lines) + "\n"
 
 
-_REQUIRED = ("format", "policy", "scene", "objects_label", "grippers_label", "grippers", "cameras", "rate",
+_REQUIRED = ("format", "policy", "scene", "objects", "objects_label", "grippers_label", "grippers", "cameras", "rate",
              "episodes", "seed", "average", "per_gripper")
+
+_TYPES = {
+    "rate": ((int, float), "a number"), "episodes": (int, "an integer"), "cameras": (int, "an integer"),
+    "average": (dict, "an object"), "per_gripper": (dict, "an object"),
+}
+"""Keys of a result whose value a reader computes with: the JSON type each must have, in words."""
 
 
 def read_json(path: str | Path):
@@ -756,6 +762,9 @@ def read_result(path: str | Path) -> dict:
     for key in _REQUIRED:
         if key not in data:
             raise EvaluationError(f"{path}: {key}: missing")
+    for key, (types, words) in _TYPES.items():
+        if isinstance(data[key], bool) or not isinstance(data[key], types):
+            raise EvaluationError(f"{path}: {key}: expected {words}, got {data[key]!r:.60}")
     if data["policy"] not in POLICIES:
         raise EvaluationError(f"{path}: policy: expected one of {list(POLICIES)}, got {data['policy']!r}")
     if data["scene"] not in SCENE_KINDS:

@@ -362,9 +362,16 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     old = relabel(single, tmp_path, "old", format="something-else")
+    word_rate = relabel(single, tmp_path, "word_rate", rate="abc")
+    list_average = relabel(single, tmp_path, "list_average", average=[])
+    no_objects = tmp_path / "no_objects.json"
+    no_objects.write_text(json.dumps({k: v for k, v in single.items() if k != "objects"}))
     md = tmp_path / "never.md"
     for files, needle in (([single_path, dup], "the same cell is already in"), ([bad], "not valid JSON"),
-                          ([old], "format: expected"), ([tmp_path / "gone.json"], "gone.json: file not found")):
+                          ([old], "format: expected"), ([tmp_path / "gone.json"], "gone.json: file not found"),
+                          ([word_rate], "word_rate.json: rate: expected a number, got 'abc'"),
+                          ([list_average], "list_average.json: average: expected an object, got []"),
+                          ([no_objects], "no_objects.json: objects: missing")):
         assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and needle in err
