@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common.files import atomic_write_text
+
 CHECK_OPENINGS = 11
 """Openings visited from 0 to 1 by the check."""
 CHECK_SCALES = (0.8, 1.2)
@@ -234,7 +236,7 @@ def _cmd_check(args) -> int:
     for reason in r.reasons:
         print(f"  reason: {reason}")
     if args.json:
-        Path(args.json).write_text(json.dumps(asdict(r), indent=1))
+        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1))
     return 0 if r.passed else 1
 
 
@@ -271,9 +273,9 @@ def _cmd_generate(args) -> int:
     }
     print(json.dumps(summary))
     if args.json:
-        Path(args.json).write_text(json.dumps({"summary": summary, "grippers": results}, indent=1))
+        atomic_write_text(Path(args.json), json.dumps({"summary": summary, "grippers": results}, indent=1))
     if args.pool_yaml:
-        Path(args.pool_yaml).write_text(_pool_yaml(results))
+        atomic_write_text(Path(args.pool_yaml), _pool_yaml(results))
     return 0
 
 
@@ -312,4 +314,17 @@ def cli(argv: list[str]) -> int:
     p_gen.add_argument("--quiet", action="store_true", help="do not print rejections")
     p_gen.add_argument("--pool-yaml", help="write the passed seeds here as catalog.yaml's pool section")
     args = ap.parse_args(argv)
+    if args.cmd in ("check", "generate"):
+        from actors.evaluate import EvaluationError, check_output_path
+
+        try:  # outputs are written after the whole run: refuse one that cannot be written first
+            if args.cmd == "generate" and args.count < 1:
+                raise EvaluationError(f"--count {args.count}: expected >= 1")
+            if args.cmd == "generate" and args.start < 0:
+                raise EvaluationError(f"--start {args.start}: expected >= 0")
+            check_output_path("--json", args.json)
+            check_output_path("--pool-yaml", getattr(args, "pool_yaml", None))
+        except EvaluationError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     return {"list": _cmd_list, "check": _cmd_check, "generate": _cmd_generate}[args.cmd](args)

@@ -532,6 +532,31 @@ def test_cli_generate_writes_the_passed_seeds_as_a_pool_section(tmp_path, capsys
     assert {r["name"] for r in results} == {f"{f}-{s}" for f in FAMILY_NAMES for s in (1, 2)}
 
 
+def test_cli_generate_and_check_refuse_bad_counts_and_unwritable_outputs_before_the_run(tmp_path, capsys):
+    """Outputs are written after the whole run: one that cannot be written (its folder is a file),
+    a --count below 1 and a --start below 0 are one line before any gripper is checked; an output
+    in a folder that does not exist yet is written, the folder made."""
+    from actors.gripper_cli import cli
+
+    taken = tmp_path / "file"
+    taken.write_text("mine")
+    for argv, needle in (
+        (["generate", "--count", "0"], "--count 0: expected >= 1"),
+        (["generate", "--start", "-1"], "--start -1: expected >= 0"),
+        (["generate", "--count", "1", "--json", str(taken / "g.json")], f"--json {taken / 'g.json'}: {taken}"),
+        (["generate", "--count", "1", "--pool-yaml", str(taken / "p.yaml")], f"--pool-yaml {taken / 'p.yaml'}"),
+        (["check", "wsg_50", "--json", str(taken / "c.json")], f"--json {taken / 'c.json'}"),
+    ):
+        assert cli(argv) == 2
+        captured = capsys.readouterr()
+        err = captured.err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and needle in err[0] and not captured.out, (argv, err)
+    assert taken.read_text() == "mine"
+    out = tmp_path / "new" / "deeper" / "gen.json"
+    assert cli(["generate", "--count", "1", "--no-physics", "--quiet", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["summary"]["generated"] == 1
+
+
 def test_pool_catalogue_holds_the_training_catalogue_and_valid_names():
     from common.gripper_procedural import catalog_names
 
