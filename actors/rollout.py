@@ -142,6 +142,11 @@ def run(args) -> dict:
     openings = tuple(float(o) for o in cfg.grippers.eval_openings)
     policy = _policy(args, cfg, spec, openings)
     png_dir = Path(args.png) if args.png else None
+    if png_dir is not None and png_dir.exists() and not png_dir.is_dir():
+        raise ValueError(f"--png {png_dir}: exists and is not a folder")
+    from actors.evaluate import check_output_path  # imported here: actors.evaluate builds on this module
+
+    check_output_path("--json", args.json)  # written after every episode: refuse an unwritable one first
     if png_dir is not None:
         png_dir.mkdir(parents=True, exist_ok=True)
     trials, successes, times = 0, 0, []

@@ -91,7 +91,7 @@ def cli(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         out = export_model(args.run, args.name, args.checkpoint, args.dest, args.force, args.trained_weights)
-    except (ValueError, CheckpointError) as e:
+    except (ValueError, CheckpointError, OSError) as e:
         print(f"export: error: {e}", file=sys.stderr)
         return 2
     print(out)

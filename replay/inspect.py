@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from replay.schema import ReplayError
+from replay.schema import ReplayError, ReplayInputError
 from replay.shard import ReplayShard, StoredTrial, disk_usage, find_shards
 
 RATE_BINS = 12
@@ -334,8 +334,12 @@ def cli(argv: list[str]) -> int:
             if args.json_out:
                 Path(args.json_out).write_text(json.dumps(summary, indent=2))
         elif args.command == "show":
+            if Path(args.out).suffix.lower() != ".png":
+                raise ReplayInputError(f"--out {args.out}: expected a .png file")
             print(render_trial(args.path, args.trial, args.out))
         else:
+            if Path(args.out).suffix != ".npz":
+                raise ReplayInputError(f"--out {args.out}: expected a .npz file (numpy.savez would add the suffix)")
             shapes = export_trials(args.path, args.trials, args.out)
             print(f"{args.out}: " + ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items()))
     except (ReplayError, OSError) as e:

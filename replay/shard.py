@@ -194,6 +194,8 @@ def read_kind(path: str | Path) -> dict | None:
 def find_shards(path: str | Path) -> list[Path]:
     """Shard groups at ``path``: the group itself if it is a shard, else the shards of a replay root."""
     p = Path(path)
+    if not p.exists():
+        raise ReplaySchemaError(f"{p}: no such file or folder")
     attrs = read_kind(p)
     if attrs is None:
         raise ReplaySchemaError(f"{p}: attributes.{ATTR_KEY}: not a replay root or shard group")

@@ -92,9 +92,17 @@ def test_errors_are_one_line_with_exit_code_2(replay_root, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--trial 99" in err and "12 trials" in err
     assert cli(["inspect", str(tmp_path / "nowhere")]) == 2
+    assert f"{tmp_path / 'nowhere'}: no such file or folder" in capsys.readouterr().err
+    assert cli(["inspect", str(tmp_path)]) == 2
     assert "not a replay root or shard group" in capsys.readouterr().err
     assert cli(["export", str(root), "--trials", "5", "--out", str(tmp_path / "x.npz")]) == 2
     assert "expected A:B" in capsys.readouterr().err
+    for command, out, needle in (("show", "x.txt", "expected a .png file"), ("export", "x", "expected a .npz file")):
+        where = ["--trial", "0"] if command == "show" else ["--trials", "0:2"]
+        assert cli([command, str(root), *where, "--out", str(tmp_path / out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and f"--out {tmp_path / out}: {needle}" in err, err
+        assert not (tmp_path / out).exists() and not (tmp_path / f"{out}.npz").exists()
 
 
 def test_module_entry_point(replay_root):

@@ -161,12 +161,17 @@ def test_rollout_with_a_checkpoint_policy(tmp_path):
         (["--gripper", "no_such_gripper"], "no_such_gripper"),
         (["--policy", "random", "--mode", "adagrasp"], "--mode"),
         (["--policy", "checkpoint:/no/such/model.pt"], "/no/such/model.pt"),
+        (["--png", "{tmp}/s.json"], "s.json: exists and is not a folder"),
+        (["--json", "{tmp}/s.json/inside.json"], "s.json/inside.json:"),
     ],
 )
 def test_rollout_bad_input_is_one_line(tmp_path, capsys, extra, needle):
     out = tmp_path / "s.json"
+    if any("{tmp}" in e for e in extra):  # a file where a folder is wanted
+        out.write_text("mine")
+        extra = [e.format(tmp=tmp_path) for e in extra]
     argv = ["--gripper", GRIPPER, "--episodes", "1", "--json", str(out)] + extra
     assert cli(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err, err
-    assert not out.exists(), "nothing is written on bad input"
+    assert not out.exists() or out.read_text() == "mine", "nothing is written on bad input"
