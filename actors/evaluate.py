@@ -74,9 +74,9 @@ from actors.rollout import episode_seed
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
 from common.calibration import Calibration, calibration_from_result, file_sha256
 from common.checkpoint import CheckpointError, inference_config, read_checkpoint, resolve_checkpoint
-from common.config import Config, from_dict, load_config, to_dict
+from common.config import Config, from_dict, load_config, set_value, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
-from common.gripper import GripperSpec, get_gripper, list_grippers
+from common.gripper import GripperSpec, check_scale, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
 from common.network import build_model
 from common.policy import LearnedPolicy
@@ -210,12 +210,11 @@ def resolve_grippers(selection: str) -> list[tuple[str, GripperSpec]]:
 
 
 def _config(args) -> Config:
-    overrides = list(args.set) + [
-        f"sim.scene={args.scene}",
-        f"sim.objects={args.objects}",
-        f"sim.cameras={args.cameras}",
-    ]
-    return load_config(args.config, overrides)
+    cfg = load_config(args.config, list(args.set))
+    for flag, key, value in (("--scene", "sim.scene", args.scene), ("--objects", "sim.objects", args.objects),
+                             ("--cameras", "sim.cameras", args.cameras)):
+        set_value(cfg, key, value, flag)  # an error names the flag the value came from
+    return cfg
 
 
 def make_plan(args) -> EvalPlan:
@@ -224,6 +223,7 @@ def make_plan(args) -> EvalPlan:
         raise EvaluationError(f"--episodes: expected at least 1, got {args.episodes}")
     if args.actors < 1:
         raise EvaluationError(f"--actors: expected at least 1, got {args.actors}")
+    check_scale(args.scale, "--scale")
     cfg = _config(args)
     if not object_names(args.objects):
         raise ObjectSetError(f"--objects {args.objects}: the object set is empty")

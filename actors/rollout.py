@@ -27,8 +27,8 @@ import numpy as np
 from actors.grasp import TrialResult, run_episode
 from actors.policies import Policy, make_policy
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
-from common.config import Config, load_config
-from common.gripper import get_gripper
+from common.config import Config, load_config, set_value
+from common.gripper import check_scale, get_gripper
 
 
 def episode_seed(seed: int, episode: int) -> int:
@@ -59,14 +59,12 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _config(args) -> Config:
-    overrides = list(args.set)
-    if args.scene is not None:
-        overrides.append(f"sim.scene={args.scene}")
-    if args.objects is not None:
-        overrides.append(f"sim.objects={args.objects}")
-    if args.cameras is not None:
-        overrides.append(f"sim.cameras={args.cameras}")
-    return load_config(args.config, overrides)
+    cfg = load_config(args.config, list(args.set))
+    for flag, key, value in (("--scene", "sim.scene", args.scene), ("--objects", "sim.objects", args.objects),
+                             ("--cameras", "sim.cameras", args.cameras)):
+        if value is not None:
+            set_value(cfg, key, value, flag)  # an error names the flag the value came from
+    return cfg
 
 
 def _policy(args, cfg: Config, spec, openings: tuple[float, ...]) -> Policy:
@@ -138,6 +136,7 @@ def run(args) -> dict:
     cfg = _config(args)
     if args.episodes < 1:
         raise ValueError(f"--episodes: expected at least 1, got {args.episodes}")
+    check_scale(args.scale, "--scale")
     spec = get_gripper(args.gripper)
     openings = tuple(float(o) for o in cfg.grippers.eval_openings)
     policy = _policy(args, cfg, spec, openings)

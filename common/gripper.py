@@ -581,14 +581,24 @@ def list_grippers(split: str | None = None, family: str | None = None) -> list[G
 # --------------------------------------------------------------------------------------
 
 
+SCALE_RANGE = (0.05, 20.0)
+"""Global gripper scales the processed URDFs are made for."""
+
+
+def check_scale(scale: float, flag: str = "scale") -> None:
+    """ValueError in one line naming ``flag`` unless ``scale`` lies in SCALE_RANGE (NaN does not)."""
+    lo, hi = SCALE_RANGE
+    if not lo <= scale <= hi:
+        raise ValueError(f"{flag}: expected a value in [{lo:g}, {hi:g}], got {scale}")
+
+
 def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> Path:
     """Path of the processed URDF scaled by ``scale`` (cached next to the processed URDF).
 
     With ``visual_from_collision`` every visual is replaced by the link's collision geometry
     (renders then show exactly what collides, as the encoding does).
     """
-    if not 0.05 <= scale <= 20.0:
-        raise ValueError(f"scale must lie in [0.05, 20], got {scale}")
+    check_scale(scale)
     suffix = "-vc" if visual_from_collision else ""
     out = spec.urdf.parent / f"gripper_s{scale:.6f}{suffix}.urdf"
     if out.is_file():

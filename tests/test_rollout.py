@@ -162,6 +162,8 @@ def test_rollout_with_a_checkpoint_policy(tmp_path):
         (["--policy", "random", "--mode", "adagrasp"], "--mode"),
         (["--policy", "checkpoint:/no/such/model.pt"], "/no/such/model.pt"),
         (["--png", "{tmp}/s.json"], "s.json: exists and is not a folder"),
+        (["--scale", "-1"], "--scale: expected a value in [0.05, 20], got -1.0"),
+        (["--cameras", "9"], "--cameras: sim.cameras: expected a value in [1, 4], got 9"),
         (["--json", "{tmp}/s.json/inside.json"], "s.json/inside.json:"),
     ],
 )
