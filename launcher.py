@@ -29,6 +29,10 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in ("-h", "--help") and len(argv) == 1:
         print(__doc__)
         return 0
+    if argv and not argv[0].startswith("-") and argv[0] not in SUBCOMMANDS:
+        print(f"launcher: error: {argv[0]!r}: not a command (one of {', '.join(SUBCOMMANDS)}; none = train)",
+              file=sys.stderr)
+        return 2
     name = argv[0] if argv and argv[0] in SUBCOMMANDS else "train"
     rest = argv[1:] if argv and argv[0] in SUBCOMMANDS else argv
     apply_process_env()

@@ -905,7 +905,15 @@ def table(argv: list[str]) -> str:
     return markdown
 
 
+EVALUATE_COMMANDS = ("table", "compare", "runs", "holm")
+"""``evaluate`` subcommands; without one, ``evaluate`` runs an evaluation."""
+
+
 def cli(argv: list[str]) -> int:
+    if argv and not argv[0].startswith("-") and argv[0] not in EVALUATE_COMMANDS:
+        print(f"evaluate: error: {argv[0]!r}: not a command (one of {', '.join(EVALUATE_COMMANDS)}; an evaluation "
+              "starts with its flags)", file=sys.stderr)
+        return 2
     try:
         if argv and argv[0] == "table":
             table(argv[1:])

@@ -26,6 +26,9 @@ import math
 import sys
 from pathlib import Path
 
+PROGRESS_KEYS = ("trials", "success_rate", "epsilon", "loss")
+"""Keys of a RUN/progress.jsonl record the curve plots."""
+
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     """95% Wilson score interval of a success rate."""
@@ -42,7 +45,19 @@ def read_progress(run: Path) -> list[dict]:
     path = run / "progress.jsonl"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: not found (is {run} a run directory?)")
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    lines = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError as e:  # a killed run can leave a torn last line
+            raise ValueError(f"{path}: line {n}: not valid JSON ({e.msg})") from None
+        missing = [k for k in PROGRESS_KEYS if not isinstance(record, dict) or k not in record]
+        if missing:
+            raise ValueError(f"{path}: line {n}: {missing[0]}: missing (not a progress record)")
+        lines.append(record)
+    return lines
 
 
 def read_greedy(paths: list[str], run: Path | None = None) -> list[dict]:

@@ -46,6 +46,14 @@ def test_curve_errors_are_one_line(tmp_path, capsys):
     assert "scripted.json: checkpoint: missing" in err and "\n" not in err
     assert main([str(tmp_path / "nowhere"), "--out", str(tmp_path / "c.png")]) == 2
     assert "progress.jsonl: not found" in capsys.readouterr().err
+    good = json.dumps({"time": 1, "trials": 10, "success_rate": 0.3, "epsilon": 0.8, "loss": 0.7})
+    for last, needle in (('{"time": 2, "tri', "line 2: not valid JSON"), ('{"foo": 1}', "line 2: trials: missing"),
+                         ("[1, 2]", "line 2: trials: missing")):
+        (tmp_path / "progress.jsonl").write_text(f"{good}\n{last}\n")
+        assert main([str(tmp_path), "--out", str(tmp_path / "c.png")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and f"progress.jsonl: {needle}" in err, err
+    assert not (tmp_path / "c.png").exists()
 
 
 def test_held_out_results_are_lines_per_row_at_the_trials_their_checkpoints_saw(tmp_path):

@@ -130,6 +130,19 @@ def test_a_failing_learner_still_lets_the_actors_finish_and_writes_the_final_che
     assert ckpt.step >= 1 and ckpt.extra["replay"]["inserted"] == _committed(run_dir) > 0
 
 
+def test_a_mistyped_command_is_one_line_naming_the_commands(capsys):
+    """A misspelt command was read as the train command's (or an evaluation's) arguments."""
+    from actors.evaluate import cli as evaluate_cli
+    from launcher import main
+
+    assert main(["evalute", "table", "x.json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["launcher: error: 'evalute': not a command (one of train, rollout, grippers, evaluate; none = train)"]
+    assert evaluate_cli(["tabel", "x.json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("evaluate: error: 'tabel': not a command (one of table, compare"), err
+
+
 def test_bad_config_value_is_one_line(tmp_path, capsys):
     rc = cli(["--actors", "0", "--config", "tiny", "--set", "learner.lr=fast", "--run-dir", str(tmp_path / "r")])
     err = capsys.readouterr().err.strip().splitlines()
