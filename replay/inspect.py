@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -327,6 +328,18 @@ def cli(argv: list[str]) -> int:
     p.add_argument("--trials", required=True, help="A:B, Python slice over positions")
     p.add_argument("--out", required=True)
     args = parser.parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.showwarning = _one_line_warning  # restored on exit
+        return _run(args)
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings of the replay (a corrupt chunk skipped, say) as one line on stderr, without the
+    source line Python's default format adds."""
+    print(f"warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         if args.command == "inspect":
             summary = summarize(args.path)

@@ -113,3 +113,15 @@ def test_module_entry_point(replay_root):
     assert r.returncode == 0, r.stderr
     assert "trials            12" in r.stdout
     assert ReplayShard(root / "shard_000", read_only=True).size() == 6
+
+
+def test_a_corrupt_chunk_is_one_warning_line_and_the_error_one_line(replay_root, tmp_path, capsys):
+    """A damaged chunk reaches the user of `python -m replay` as one `warning:` line (not Python's
+    two-line warning with the source line) and, where the trial is asked for, one `error:` line."""
+    root, _, _ = replay_root
+    chunk = next(p for p in sorted((root / "shard_000" / "tsdf").iterdir()) if p.name.startswith("c."))
+    chunk.write_bytes(b"not a chunk")
+    assert cli(["show", str(root), "--trial", "0", "--out", str(tmp_path / "t.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and all(line.startswith(("warning: ", "error: ")) for line in err), err
+    assert err[-1].startswith("error: ") and not any("shard.py" in line for line in err), err
