@@ -119,8 +119,8 @@ def test_a_corrupt_chunk_is_one_warning_line_and_the_error_one_line(replay_root,
     """A damaged chunk reaches the user of `python -m replay` as one `warning:` line (not Python's
     two-line warning with the source line) and, where the trial is asked for, one `error:` line."""
     root, _, _ = replay_root
-    chunk = next(p for p in sorted((root / "shard_000" / "tsdf").iterdir()) if p.name.startswith("c."))
-    chunk.write_bytes(b"not a chunk")
+    for shard in ("shard_000", "shard_001"):  # the oldest trial is the first of one of them (the client's pick)
+        (root / shard / "tsdf" / "c.0.0.0.0").write_bytes(b"not a chunk")
     assert cli(["show", str(root), "--trial", "0", "--out", str(tmp_path / "t.png")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err and all(line.startswith(("warning: ", "error: ")) for line in err), err
