@@ -74,7 +74,7 @@ from actors.rollout import episode_seed
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
 from common.calibration import Calibration, calibration_from_result, file_sha256
 from common.checkpoint import CheckpointError, inference_config, read_checkpoint, resolve_checkpoint
-from common.config import Config, from_dict, load_config, set_value, to_dict
+from common.config import Config, from_dict, load_config, set_flags, to_dict
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, check_scale, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
@@ -211,9 +211,8 @@ def resolve_grippers(selection: str) -> list[tuple[str, GripperSpec]]:
 
 def _config(args) -> Config:
     cfg = load_config(args.config, list(args.set))
-    for flag, key, value in (("--scene", "sim.scene", args.scene), ("--objects", "sim.objects", args.objects),
-                             ("--cameras", "sim.cameras", args.cameras)):
-        set_value(cfg, key, value, flag)  # an error names the flag the value came from
+    set_flags(cfg, (("--scene", "sim.scene", args.scene), ("--objects", "sim.objects", args.objects),
+                    ("--cameras", "sim.cameras", args.cameras)))
     return cfg
 
 

@@ -27,7 +27,7 @@ import numpy as np
 from actors.grasp import TrialResult, run_episode
 from actors.policies import Policy, make_policy
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
-from common.config import Config, load_config, set_value
+from common.config import Config, load_config, set_flags
 from common.gripper import check_scale, get_gripper
 
 
@@ -60,10 +60,8 @@ def _parser() -> argparse.ArgumentParser:
 
 def _config(args) -> Config:
     cfg = load_config(args.config, list(args.set))
-    for flag, key, value in (("--scene", "sim.scene", args.scene), ("--objects", "sim.objects", args.objects),
-                             ("--cameras", "sim.cameras", args.cameras)):
-        if value is not None:
-            set_value(cfg, key, value, flag)  # an error names the flag the value came from
+    set_flags(cfg, (("--scene", "sim.scene", args.scene), ("--objects", "sim.objects", args.objects),
+                    ("--cameras", "sim.cameras", args.cameras)))
     return cfg
 
 

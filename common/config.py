@@ -597,6 +597,14 @@ def set_value(cfg: Config, key: str, value: Any, source: str) -> None:
     _apply(cfg, nested, source)
 
 
+def set_flags(cfg: Config, flags) -> None:
+    """Each (flag, dotted key, value) of a command line whose value was given (not None), set as
+    :func:`set_value` does, an error naming the flag the value came from."""
+    for flag, key, value in flags:
+        if value is not None:
+            set_value(cfg, key, value, flag)
+
+
 def to_dict(cfg: Any) -> dict:
     """Plain nested dict of a config (tuples as lists), for YAML, JSON and checkpoints."""
 

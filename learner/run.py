@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights, network_difference, read_checkpoint
-from common.config import Config, ConfigError, load_config, save_config, set_value
+from common.config import Config, ConfigError, load_config, save_config, set_flags
 from common.files import atomic_write_text
 from replay.schema import ReplayError
 
@@ -71,14 +71,11 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         run_dir = Path(args.run_dir) if args.run_dir else Path(cfg.run.run_dir) / time.strftime("%Y%m%d-%H%M%S")
         if (run_dir / "config.yaml").exists():
             raise ConfigError(f"{run_dir}: already holds a run; pass --resume to continue it")
-    flags = (
+    set_flags(cfg, (  # range-checked before RUN/config.yaml is written
         ("--shards", "replay.shards", args.shards),
         ("--max-trials", "run.max_trials", args.max_trials),
         ("--max-minutes", "run.max_minutes", args.max_minutes),
-    )
-    for flag, key, value in flags:
-        if value is not None:
-            set_value(cfg, key, value, flag)  # range-checked before RUN/config.yaml is written
+    ))
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"{run_dir}: --run-dir: exists and is not a folder")
     if (run_dir / "replay" / "zarr.json").is_file() and (args.resume or not cfg.replay.seed_from):
