@@ -221,8 +221,12 @@ class LearnerProcess:
     def first_episodes(self, n_actors: int) -> list[int]:
         """The first episode number of each actor id in this part of the run: for ``n_actors`` ids
         at least, and for every id the checkpoint recorded (a part with fewer actors keeps the
-        numbers of the others for a later part)."""
-        return self.next_episode + [0] * max(0, n_actors - len(self.next_episode))
+        numbers of the others for a later part). After a crash the replay may hold episodes
+        committed after the last checkpoint: numbering starts after those too."""
+        ends = self.replay.episode_ends()
+        n = max(n_actors, len(self.next_episode), max(ends, default=-1) + 1)
+        recorded = self.next_episode + [0] * (n - len(self.next_episode))
+        return [max(recorded[a], ends.get(a, 0)) for a in range(n)]
 
     def history(self) -> list:
         """(step, loss) pairs since the run started."""
@@ -361,13 +365,13 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
             inserted = stats["inserted"]
             progress.tick(inserted, stats, eps)
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                learner.checkpoint(eps, inserted, snapshot=True, next_episode=[actor.episode] + episodes[1:])
+                learner.checkpoint(eps, inserted, snapshot=True, next_episode=[actor.episode, *episodes[1:]])
                 progress.add_score_maps(learner.score_map_image())
                 last_ckpt = time.time()
     finally:
         actor.close()
         inserted = learner.inserted()
-        learner.checkpoint(epsilon_at(cfg, inserted), inserted, next_episode=[actor.episode] + episodes[1:])
+        learner.checkpoint(epsilon_at(cfg, inserted), inserted, next_episode=[actor.episode, *episodes[1:]])
         progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
         progress.close()
         for s in shards:

@@ -329,6 +329,15 @@ class ReplayClient:
         """Readable visible trials over all shards."""
         return int(sum(self._backend.get([self._backend.submit(s, "size") for s in self._shards])))
 
+    def episode_ends(self) -> dict[int, int]:
+        """Per actor id, one past the largest episode number among the run's visible trials over
+        all shards (see ReplayShard.episode_ends)."""
+        ends: dict[int, int] = {}
+        for part in self._backend.get([self._backend.submit(s, "episode_ends") for s in self._shards]):
+            for a, e in part.items():
+                ends[int(a)] = max(ends.get(int(a), 0), int(e))
+        return ends
+
     def stats(self) -> dict:
         """Per-shard counters and totals, plus this client's counters."""
         per = self._backend.get([self._backend.submit(s, "stats") for s in self._shards])

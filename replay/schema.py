@@ -38,6 +38,8 @@ ROOT_KIND = "root"
 
 SHARD_NAME = "shard_{index:03d}"
 """Name of shard k's group under a replay root."""
+SHARD_NAME_PATTERN = r"shard_\d{3,}"
+"""Regular expression every name SHARD_NAME gives matches (and no hidden staging name)."""
 
 OBSTACLE_LEVELS = 127
 """Stored obstacle code = round(obstacle * 127), int8 in [0, 127]; max error 1/254."""

@@ -58,6 +58,7 @@ from replay.schema import (
     SCHEMA_VERSION,
     SHARD_KIND,
     SHARD_NAME,
+    SHARD_NAME_PATTERN,
     TABLE_COLUMN_NAMES,
     ArraySpec,
     EncodedTrial,
@@ -258,7 +259,7 @@ def check_root(root: str | Path, num_shards: int) -> bool:
 def _refuse_damaged_shard(path: Path) -> None:
     """One line when ``path`` is a shard's folder (shard_NNN) that holds files but no zarr.json: its
     trials cannot be read, and a new shard cannot be created over them."""
-    if re.fullmatch(r"shard_\d+", path.name) and path.is_dir() and not (path / "zarr.json").is_file():
+    if re.fullmatch(SHARD_NAME_PATTERN, path.name) and path.is_dir() and not (path / "zarr.json").is_file():
         held = sum(1 for f in path.rglob("*") if f.is_file())
         if held:
             raise ReplaySchemaError(
@@ -1035,6 +1036,17 @@ class ReplayShard:
             "table_rows_used": int((self._refcount > 0).sum()),
             "problems": list(self._problems),
         }
+
+    def episode_ends(self) -> dict[int, int]:
+        """Per actor id, one past the largest episode number among this run's visible trials
+        (trials a new replay was seeded with are left out): where a resumed run's episode
+        numbers must start when trials were committed after its last checkpoint."""
+        ids = self.visible_ids()
+        ends: dict[int, int] = {}
+        for text in self._col["meta"][ids[ids >= self.seeded_trials] % self.slots]:
+            meta = meta_from_json(str(text))
+            ends[meta.actor_id] = max(ends.get(meta.actor_id, 0), meta.episode_id + 1)
+        return ends
 
     def problems(self) -> list[str]:
         """One line per unreadable chunk or lost trial found so far."""

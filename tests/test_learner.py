@@ -531,3 +531,26 @@ def test_a_resumed_run_draws_new_episodes_and_numbers_them_after_the_first_part(
     assert second and min(e for _, e in second) == recorded[0], (sorted(first), sorted(second))
     assert all(both[k] == v for k, v in first.items()), "the first part's trials are as they were"
     assert not set(first.values()) & set(second.values()), "a resumed part drew an episode of the first part again"
+
+
+def test_after_a_crash_a_resumed_run_numbers_its_episodes_after_those_the_replay_holds(tmp_path):
+    """A crash after trials were committed but before the next checkpoint: the replay holds
+    episodes the checkpoint does not know of. The resumed part numbers its episodes after those,
+    so (actor_id, episode_id) stays one episode (``_episodes`` asserts one draw per key)."""
+    import shutil
+
+    from learner.loop import checkpoint_path
+    from learner.run import cli
+
+    run = tmp_path / "run"
+    assert cli(["--config", "tiny", "--run-dir", str(run), "--actors", "0", "--max-trials", "2", "--quiet"]) == 0
+    ckpt = checkpoint_path(run)
+    shutil.copy(ckpt, tmp_path / "at_crash.pt")
+    assert cli(["--resume", "--run-dir", str(run), "--actors", "0", "--max-trials", "4", "--quiet"]) == 0
+    before = _episodes(run)
+    shutil.copy(tmp_path / "at_crash.pt", ckpt)  # the second part's checkpoints never reached the disk
+    assert cli(["--resume", "--run-dir", str(run), "--actors", "0", "--max-trials", "6", "--quiet"]) == 0
+    after = _episodes(run)
+    third = {k: v for k, v in after.items() if k not in before}
+    assert third and min(e for _, e in third) == max(e for _, e in before) + 1, (sorted(before), sorted(third))
+    assert all(after[k] == v for k, v in before.items()), "earlier trials keep their episode numbers"
