@@ -55,6 +55,11 @@ LEARNER_CHUNK_S = 2.0
 held back by the rate limiter) see fresh sample counts even when one step takes seconds."""
 LEARNER_IDLE_WAIT_S = 1.0
 """A learner call with no step allowed waits this long for new trials before returning."""
+LEARNER_RESTARTS = 3
+"""A lost learner process (killed, out of memory, its node gone) restarts from latest.pt and the
+run goes on, this many times at most; the next loss ends the run."""
+LEARNER_RESTART_WAIT_S = 300.0
+"""How long the driver waits for a lost learner's new process to take calls."""
 
 
 def checkpoint_path(run_dir: Path) -> Path:
@@ -120,9 +125,13 @@ class LearnerProcess:
         """Trials this run's actors ever committed to the replay (see total_inserted)."""
         return total_inserted(self.replay)
 
-    def train(self, max_steps: int, idle_wait_s: float = 0.0, force_publish: bool = False) -> dict:
+    def train(
+        self, max_steps: int, idle_wait_s: float = 0.0, force_publish: bool = False, after_version: int = 0
+    ) -> dict:
         """Up to ``max_steps`` steps as the rate limiter allows; a new weights version when due
-        (or always, with ``force_publish``: the first call of a run, fresh or resumed).
+        (or always, with ``force_publish``: the first call of a run, fresh or resumed, or of a
+        restarted learner). A published version is above ``after_version``: a learner restarted
+        from latest.pt numbers its weights after those the actors already hold.
 
         When no step is allowed yet, waits up to ``idle_wait_s`` for new trials before returning.
         Returns a stats dict; ``weights`` holds ``(version, [ref or state])`` when one was published.
@@ -144,6 +153,7 @@ class LearnerProcess:
             "weights": None,
         }
         if force_publish or self.learner.steps_since_publish >= self.cfg.learner.publish_every:
+            self.learner.stats.version = max(self.learner.stats.version, int(after_version))
             out["weights"] = self.publish()
             out["version"] = self.learner.stats.version
         return out
@@ -379,6 +389,21 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
     return _summary(run_dir, inserted, stats, progress, {"mode": "local", "weights_published": published})
 
 
+def _first_call_after_restart(call):
+    """``ray.get(call())`` once the restarting actor takes calls (up to LEARNER_RESTART_WAIT_S)."""
+    import ray
+    from ray.exceptions import ActorUnavailableError
+
+    deadline = time.time() + LEARNER_RESTART_WAIT_S
+    while True:
+        try:
+            return ray.get(call())
+        except ActorUnavailableError:
+            if time.time() > deadline:
+                raise
+            time.sleep(1.0)
+
+
 class ActorProcess:
     """A GraspActor inside a Ray actor process: fetches weights by reference when they are newer."""
 
@@ -442,7 +467,7 @@ def run_distributed(
     replay = ReplayClient(shards, cfg, seed=cfg.run.seed + 2)  # the driver's view: counts only
     stats = ray.get(learner.train.remote(0, force_publish=True))
     version, box = stats["weights"]
-    published, restarts = 1, 0
+    published, restarts, learner_restarts = 1, 0, 0
     pending: dict = {}
 
     inserted = stats["inserted"]
@@ -465,7 +490,17 @@ def run_distributed(
             ready, _ = ray.wait(list(pending) + [learner_future], num_returns=1, timeout=1.0)
             for ref in ready:
                 if ref is learner_future:
-                    stats = ray.get(ref)
+                    try:
+                        stats = ray.get(ref)
+                    except RayActorError as e:
+                        if learner_restarts >= LEARNER_RESTARTS:
+                            raise
+                        learner_restarts += 1
+                        print(f"learner: process lost ({type(e).__name__}); it restarts from its last checkpoint "
+                              f"and continues", flush=True)
+                        stats = _first_call_after_restart(
+                            lambda: learner.train.remote(0, force_publish=True, after_version=version)
+                        )
                     if stats["weights"] is not None:
                         version, box = stats["weights"]
                         published += 1
@@ -522,6 +557,7 @@ def run_distributed(
     (Path(run_dir) / "history.json").write_text(json.dumps(history))
     return _summary(
         run_dir, inserted, stats, progress,
-        {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts, "checkpoint": ckpt,
+        {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts,
+         "learner_restarts": learner_restarts, "checkpoint": ckpt,
          "actor_wait_s": round(wait_s + sum(time.time() - w for w in waiting.values()), 1)},  # summed over actors
     )

@@ -173,8 +173,9 @@ def with_earlier_parts(path: Path, summary: dict) -> dict:
 
     A resumed run writes ``summary.json`` again. Its ``trials``, ``learner_steps``,
     ``learner_samples`` and ``weights_version`` count the whole run. Its ``episodes``,
-    ``weights_published``, ``actor_restarts`` and ``actor_wait_s`` count this part only, so
-    the earlier parts' summaries are carried over as ``earlier_parts`` (oldest first).
+    ``weights_published``, ``actor_restarts``, ``learner_restarts`` and ``actor_wait_s`` count
+    this part only, so the earlier parts' summaries are carried over as ``earlier_parts``
+    (oldest first).
     A part that was killed wrote no summary and has no entry. An unreadable file is
     renamed to ``summary.unreadable-<time>.json``, with a one-line warning, and never
     overwritten.

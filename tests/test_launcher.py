@@ -130,6 +130,66 @@ def test_a_failing_learner_still_lets_the_actors_finish_and_writes_the_final_che
     assert ckpt.step >= 1 and ckpt.extra["replay"]["inserted"] == _committed(run_dir) > 0
 
 
+LOST_LEARNER = """
+import os
+
+import learner.loop as loop
+
+_train = loop.LearnerProcess.train
+
+
+def train(self, max_steps, *args, **kwargs):
+    import ray
+
+    if self.learner.stats.steps >= 3 and not ray.get_runtime_context().was_current_actor_reconstructed:
+        with open(os.environ["LOST_LEARNER_VERSION"], "w") as f:
+            f.write(str(self.learner.stats.version))
+        os._exit(1)
+    return _train(self, max_steps, *args, **kwargs)
+
+
+loop.LearnerProcess.train = train
+"""
+"""A sitecustomize for the launcher and every Ray process it starts: the learner's first process
+dies (as if killed) once it has trained, writing the weights version it had published."""
+
+
+def _policy_versions(run_dir: Path) -> list[int]:
+    cfg = load_config(run_dir / "config.yaml")
+    shards = open_local_shards(run_dir / "replay", cfg, read_only=True)
+    try:
+        return [s.get_trial(int(t)).meta.policy_version for s in shards for t in s.visible_ids()]
+    finally:
+        for s in shards:
+            s.close()
+
+
+def test_a_lost_learner_process_restarts_and_the_actors_take_its_new_weights(tmp_path):
+    """The learner's process dies with no checkpoint written yet: Ray restarts it, it starts again
+    from the initial weights, and the run goes on. Its weights are numbered after those the actors
+    hold, so the actors load them (numbered from 1 again, they would be ignored as old)."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(LOST_LEARNER)
+    lost = tmp_path / "lost_version"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(hook), str(ROOT)]), LOST_LEARNER_VERSION=str(lost))
+    run_dir = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "launcher", "--actors", "2", "--config", "tiny", "--run-dir", str(run_dir), "--quiet",
+         "--max-trials", "60", "--set", "learner.checkpoint_minutes=60", "--set", "learner.insert_lead=4"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    assert "learner: process lost (" in out and lost.is_file(), out[-3000:]
+    summary = _summary(proc.stdout)
+    assert summary["learner_restarts"] == 1 and summary["trials"] >= 60, summary
+    before = int(lost.read_text())
+    assert max(_policy_versions(run_dir)) > before, "the actors never took the restarted learner's weights"
+    ckpt = read_checkpoint(run_dir / "checkpoints" / "latest.pt")
+    assert ckpt.version > before and ckpt.extra["replay"]["inserted"] == _committed(run_dir)
+
+
 def test_a_mistyped_command_is_one_line_naming_the_commands(capsys):
     """A misspelt command was read as the train command's (or an evaluation's) arguments."""
     from actors.evaluate import cli as evaluate_cli
