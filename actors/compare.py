@@ -214,6 +214,9 @@ def pool(sides: list[Side]) -> Side:
                                       "only results of one row pool")
             raise EvaluationError(f"{s.path}: {key}: {s.summary.get(key)!r}, but {first.path} has "
                                   f"{first.summary.get(key)!r}: only results of one row pool")
+        if row_label(s.summary) != row_label(first.summary):
+            raise EvaluationError(f"{s.path}: opening_rule: row {row_label(s.summary)!r}, but {first.path} is "
+                                  f"{row_label(first.summary)!r}: only results of one row pool")
         if s.grippers != first.grippers:
             raise EvaluationError(f"{s.path}: grippers {s.grippers}: {first.path} pairs {first.grippers}")
         for seed in s.scene_seeds:

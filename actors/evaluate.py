@@ -26,8 +26,9 @@ Protocol (docs/EVALUATION.md has the whole text):
   and no obstacle does (``actors.grasp.execute_grasp``). An episode ends when no target is left
   or after ``sim.multi_max_attempts`` (multi) / ``sim.obstacle_max_attempts`` (obstacle) / 1
   (single) attempts. Success rate = successes / attempts.
-- Policies: ``scene-only`` and ``init-only`` need a checkpoint of that variant and run in
-  fix-gripper mode; ``fix-config`` (a random opening per attempt), ``fix-gripper`` (best opening) and
+- Policies: ``scene-only`` and ``init-only`` need a checkpoint of that variant and, like
+  ``fix-config``, take a random opening per attempt (the paper tests all three with
+  ``--random_open_scale``); ``fix-config``, ``fix-gripper`` (best opening) and
   ``adagrasp`` (best gripper of ``--grippers`` and best opening, per attempt; the chosen gripper
   is loaded into the simulation) need an ``adagrasp`` checkpoint; ``random`` and ``heuristic``
   need none. Candidate openings: ``grippers.eval_openings``. The evaluation config (``--config``,
@@ -85,8 +86,8 @@ from common.runtime import ray_init
 FORMAT = "adagrasp-scale-evaluation/1"
 """Value of the ``format`` key of every result JSON."""
 LEARNED = {
-    "scene-only": ("scene-only", "fix-gripper"),
-    "init-only": ("init-only", "fix-gripper"),
+    "scene-only": ("scene-only", "fix-config"),
+    "init-only": ("init-only", "fix-config"),
     "fix-config": ("adagrasp", "fix-config"),
     "fix-gripper": ("adagrasp", "fix-gripper"),
     "adagrasp": ("adagrasp", "adagrasp"),
@@ -98,7 +99,14 @@ POLICIES = (*LEARNED, *SCRIPTED)
 """Every ``--policy``, in the row order of the paper's table (reference rows last)."""
 CALIBRATED = "adagrasp (calibrated)"
 """Table row of ``adagrasp`` results run with ``--calibration`` (after the ``adagrasp`` row)."""
-ROWS = (*LEARNED, CALIBRATED, *SCRIPTED)
+OPENING_RULES = {"fix-config": "random", "fix-gripper": "best", "adagrasp": "best"}
+"""LearnedPolicy mode -> how a learned policy's result chose its opening (its ``opening_rule``)."""
+EARLIER_OPENING_RULES = {"scene-only": "first", "init-only": "best"}
+"""The opening rule of ``scene-only`` / ``init-only`` results written before ``opening_rule`` was
+recorded: they ran in fix-gripper mode, where scene-only's equal scores take the first candidate."""
+EARLIER_ROWS = tuple(f"{p} ({rule} opening)" for p, rule in EARLIER_OPENING_RULES.items())
+"""Table rows of those results: not the paper's protocol, so never averaged with its rows."""
+ROWS = (*LEARNED, CALIBRATED, *EARLIER_ROWS, *SCRIPTED)
 """Row labels of the table, in order."""
 POLICY_STREAM = 1
 """Third entropy word of the policy generator (:func:`policy_seed`)."""
@@ -617,9 +625,25 @@ def summarise(plan: EvalPlan, results: list[dict], argv: list[str], grippers: st
     }
 
 
+def opening_rule(summary: dict) -> str | None:
+    """How a learned policy's result chose its opening: ``random`` (one drawn per attempt),
+    ``best`` or ``first`` (:data:`EARLIER_OPENING_RULES`); None for the scripted policies."""
+    policy = summary["policy"]
+    if policy not in LEARNED:
+        return None
+    return summary.get("opening_rule") or EARLIER_OPENING_RULES.get(policy) or OPENING_RULES[LEARNED[policy][1]]
+
+
 def row_label(summary: dict) -> str:
-    """Table row of a result: its policy, or :data:`CALIBRATED` for a calibrated ``adagrasp`` run."""
-    return CALIBRATED if summary["policy"] == "adagrasp" and summary.get("calibration") else summary["policy"]
+    """Table row of a result: its policy, :data:`CALIBRATED` for a calibrated ``adagrasp`` run, or
+    one of :data:`EARLIER_ROWS` for a scene-only / init-only result that did not draw its opening."""
+    policy = summary["policy"]
+    if policy == "adagrasp" and summary.get("calibration"):
+        return CALIBRATED
+    rule = opening_rule(summary)
+    if policy in EARLIER_OPENING_RULES and rule != OPENING_RULES[LEARNED[policy][1]]:
+        return f"{policy} ({rule} opening)"
+    return policy
 
 
 def _cell(summary: dict) -> str:
@@ -871,6 +895,7 @@ def evaluate(argv: list[str]) -> dict:
         "checkpoint_variant": plan.model_cfg.model.variant if plan.model_cfg is not None else None,
         "checkpoint_version": plan.model_version if plan.model_cfg is not None else None,
         "checkpoint_sha256": plan.model_sha256,
+        "opening_rule": OPENING_RULES[LEARNED[args.policy][1]] if args.policy in LEARNED else None,
         "calibration": plan.calibration.to_dict() if plan.calibration is not None else None,
         "actors": args.actors,
         "wall_s": time.perf_counter() - t0,
