@@ -259,11 +259,42 @@ def test_gripper_switches_within_an_episode(small):
     assert [t["gripper"] for t in record["trials"]] == executed
 
 
-@pytest.mark.parametrize("variant", ["init-only", "scene-only"])
-def test_variant_policies_run_in_fix_gripper_mode(small, tmp_path, variant):
-    rc, result, _ = run_cli(learned_argv(small, variant, variant, GRIPPER, episodes=1), tmp_path)
-    assert rc == 0 and result["checkpoint_variant"] == variant and result["policy"] == variant
-    check_protocol(result, "single")
+def _openings(result):
+    return {(r["gripper"], r["scene_seed"]): [t["opening"] for t in r["trials"]] for r in result["episode_results"]}
+
+
+def test_variant_policies_draw_their_openings_as_fix_config_does(small, tmp_path):
+    """The paper tests scene-only, init-only and fix-config alike with one random opening
+    (--random_open_scale): the same stream gives the three rows the same openings on the same
+    scenes. Before, scene-only took the first candidate at every grasp (its scores are equal)
+    and init-only the best one."""
+    runs = {}
+    for policy, variant in (("fix-config", "adagrasp"), ("scene-only", "scene-only"), ("init-only", "init-only")):
+        rc, result, _ = run_cli(learned_argv(small, policy, variant, f"{GRIPPER},{OTHER}", episodes=4), tmp_path, policy)
+        assert rc == 0 and result["checkpoint_variant"] == variant and result["policy"] == policy
+        assert result["opening_rule"] == "random" and ev.row_label(result) == policy
+        check_protocol(result, "single")
+        runs[policy] = _openings(result)
+    assert runs["scene-only"] == runs["fix-config"] == runs["init-only"]
+    assert len({o for trials in runs["scene-only"].values() for o in trials}) > 1, runs["scene-only"]
+
+
+def test_results_from_before_the_opening_rule_are_rows_of_their_own(small, tmp_path):
+    """A scene-only / init-only result without ``opening_rule`` ran in fix-gripper mode: its row
+    says how it chose the opening, and it neither pools nor averages with the paper's row."""
+    rc, result, path = run_cli(learned_argv(small, "scene-only", "scene-only", GRIPPER, episodes=1), tmp_path)
+    assert rc == 0
+    earlier = {k: v for k, v in result.items() if k != "opening_rule"}
+    assert ev.row_label(earlier) == "scene-only (first opening)"
+    assert ev.row_label({**earlier, "policy": "init-only"}) == "init-only (best opening)"
+    assert ev.row_label({**earlier, "policy": "fix-gripper"}) == "fix-gripper"
+    old = relabel(earlier, tmp_path, "old", seed=1, scene_seeds=[episode_seed(1, 0)],
+                  episode_results=[{**r, "scene_seed": episode_seed(1, 0)} for r in result["episode_results"]])
+    md = ev.table([str(path), str(old)])
+    assert "| scene-only (first opening) |" in md and "| scene-only |" in md, md
+    with pytest.raises(ev.EvaluationError) as e:
+        ev.table([f"{path},{old}"])
+    assert "opening_rule: row 'scene-only (first opening)'" in str(e.value) and "\n" not in str(e.value), e.value
 
 
 @pytest.mark.parametrize(
