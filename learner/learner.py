@@ -191,13 +191,15 @@ class Learner:
         """Inverse of :meth:`state_dict`. Without a stored average (a run resumed with averaging
         newly switched on) the average restarts from the loaded weights. The learning rate is this
         learner's ``learner.lr``, not the stored one: a run resumed with ``--set learner.lr=...``
-        trains at the new rate (Adam's moment estimates are kept)."""
+        trains at the new rate (Adam's moment estimates are kept). The optimiser state is copied:
+        torch's optimiser would otherwise keep the given tensors, and a state taken from a live
+        learner in the same process would then move with that learner's steps."""
         self.model.load_state_dict(state["model"])
         if self.average is not None:
             stored = state.get("average")
             self.average.load_state_dict(state["model"] if stored is None else stored)
             self.average_updates = int(state.get("average_updates", 0)) if stored is not None else 0
-        self.optimizer.load_state_dict(state["optimizer"])
+        self.optimizer.load_state_dict(copy.deepcopy(state["optimizer"]))
         for group in self.optimizer.param_groups:
             group["lr"] = self.cfg.learner.lr
         self.stats.steps = int(state["steps"])

@@ -57,3 +57,16 @@ def test_prob_zero_leaves_batch_unchanged():
     action = torch.tensor([[1, 2, 3, 0]] * 4)
     out, out_action = augment_batch(scene, action, R, prob=0.0, generator=gen)
     assert torch.equal(out, scene) and torch.equal(out_action, action)
+
+
+def test_augmentation_with_probability_one_rotates_and_shifts_the_batch():
+    """With augment_prob 1 the batch is transformed (an augmentation that returned its input
+    unchanged would pass the consistency tests above): rotations spread over 0..R-1, most cells
+    move, the scene changes and the opening index stays."""
+    gen = torch.Generator().manual_seed(0)
+    scene = torch.rand(64, 2, 48, 48, 4)
+    action = torch.tensor([[24, 24, 0, 1]] * 64)
+    out, out_action = augment_batch(scene, action, R, prob=1.0, generator=gen)
+    assert len(set(out_action[:, 2].tolist())) >= 12
+    assert (out_action[:, :2] != action[:, :2]).any(1).float().mean() > 0.5
+    assert not torch.equal(out, scene) and torch.equal(out_action[:, 3], action[:, 3])

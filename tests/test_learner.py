@@ -111,6 +111,46 @@ def test_save_restore_continues_identically(filled_replay):
     sa = a.optimizer.state_dict()["state"]
     sb = b.optimizer.state_dict()["state"]
     assert sa.keys() == sb.keys() and all(torch.equal(sa[k]["exp_avg"], sb[k]["exp_avg"]) for k in sa)
+    assert (b.stats.version, b.stats.history) == (a.stats.version, a.stats.history)
+    # and it continues: one more step on the same batch gives bit-identical weights and counters
+    batch = client.sample(cfg.learner.batch_size)
+    for learner in (a, b):
+        learner.replay = FixedBatchReplay(batch.scene, batch.gripper, batch.action, batch.label.float())
+        learner.train(1)
+    for (ka, va), (kb, vb) in zip(a.model.state_dict().items(), b.model.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb), ka
+    assert (b.stats.steps, b.stats.samples, b.stats.loss) == (a.stats.steps, a.stats.samples, a.stats.loss)
+    assert b.publish()[0] == a.publish()[0] == saved["version"] + 1, "a restored learner numbers weights on"
+
+
+class _RecordingReplay(FixedBatchReplay):
+    """A fixed batch that remembers the index rows of the last score write-back."""
+
+    def update_scores(self, index, scores):
+        self.written_index = torch.as_tensor(index).clone()
+        super().update_scores(index, scores)
+
+
+def test_written_back_score_is_each_trials_success_probability_at_its_own_action(filled_replay):
+    """The score a step writes back is, for each trial of the batch, the softmax success
+    probability (class 1) at that trial's executed cell and rotation under the weights of that
+    step, written to that trial's index row (the replay ranks trials by these scores)."""
+    cfg, client = filled_replay
+    cfg.learner.augment_prob = 0.0
+    b = client.sample(cfg.learner.batch_size)
+    fixed = _RecordingReplay(b.scene, b.gripper, b.action, b.label.float())
+    perm = torch.randperm(b.scene.shape[0], generator=torch.Generator().manual_seed(1))
+    fixed.batch.index = fixed.batch.index[perm]  # index rows not in batch order
+    torch.manual_seed(0)
+    learner = Learner(cfg, fixed, seed=0)
+    before = copy.deepcopy(learner.model).train()
+    with torch.no_grad():
+        logits = before.forward_train(b.scene, b.gripper, b.action[:, 2])
+        rows = torch.arange(len(b.action))
+        want = torch.softmax(logits[rows, :, b.action[:, 0], b.action[:, 1]], dim=1)[:, 1].numpy()
+    learner.train(1)
+    assert torch.equal(fixed.written_index, fixed.batch.index)
+    np.testing.assert_allclose(fixed.scores[-1], want, atol=1e-5)
 
 
 def test_checkpoint_snapshot_and_score_map_image(filled_replay, tmp_path):
