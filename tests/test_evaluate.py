@@ -3,6 +3,7 @@ policy and gripper, history-independent episodes, errors, camera counts and the 
 
 import hashlib
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -257,6 +258,27 @@ def test_gripper_switches_within_an_episode(small):
     executed = [t["executed"] for t in record["trials"]]
     assert executed == [OTHER, GRIPPER, OTHER][: len(executed)] and len(executed) >= 2
     assert [t["gripper"] for t in record["trials"]] == executed
+
+
+def _record(gripper, episode, outcomes):
+    trials = [{"gripper": gripper, "success": s, "failure": None if s else "missed"} for s in outcomes]
+    return {"gripper": gripper, "episode": episode, "trials": trials, "attempts": len(trials),
+            "successes": sum(outcomes), "max_attempts": 7}
+
+
+@pytest.mark.parametrize("policy, want", [("fix-gripper", (1.0 + 0.25) / 2), ("adagrasp", 2 / 5)])
+def test_headline_rate_with_unequal_attempts_per_gripper(policy, want):
+    """The table's rate: the mean of the per-gripper rates for a per-gripper policy, successes /
+    attempts for adagrasp; they differ only when grippers make unequal numbers of attempts."""
+    cfg = load_config("default")
+    plan = SimpleNamespace(gripper_names=["a", "b"], policy=policy, scene="multi", objects="test",
+                           cfg=cfg, episodes=1, seed=0, openings=(1.0,), scale=1.0)
+    results = [_record("a", 0, [True]), _record("b", 0, [False, False, True, False])]
+    if policy == "adagrasp":
+        for r in results:
+            r["gripper"] = None
+    summary = ev.summarise(plan, results, [], "test")
+    assert summary["rate"] == pytest.approx(want) and summary["average"]["pooled_rate"] == pytest.approx(0.4)
 
 
 def _openings(result):
