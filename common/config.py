@@ -7,7 +7,7 @@ config is written into every run directory and checkpoint (:func:`to_dict`).
 
 Bad input fails with one line naming the file and the key::
 
-    ConfigError: configs/default.yaml: sim.cameras: expected int in [1, 4], got 7
+    ConfigError: configs/default.yaml: sim.cameras: expected a value in [1, 4], got 7
 
 Call loop::
 
@@ -100,7 +100,8 @@ class SimConfig:
     scene: str = "single"
     """Scene kind: single | multi | obstacle."""
     objects: str = "train"
-    """Named object set to draw objects from (see actors.objects.OBJECT_SETS)."""
+    """Named object set to draw objects from (declared in assets/objects/sets.yaml; listed by
+    actors.objects.list_object_sets(): train, test, procedural, ...)."""
     cameras: int = 1
     """Number of cameras fused into one TSDF (1 = top-down, 2-4 on a ring)."""
     camera_ring_radius: float = 0.45
@@ -157,7 +158,8 @@ class SimConfig:
     table_lateral_friction: float = 1.0
     """Lateral friction coefficient of the table."""
     action_half_extent: float = 0.16
-    """Half-size (m) of the square of cells a random action may pick (the paper's valid bounds)."""
+    """Half-size (m) of the square of cells any policy may act on, around the grid centre (the
+    paper's valid bounds; common.policy.action_region and valid_cells)."""
     tcp_speed: float = 0.5
     """Speed (m/s) of the gripper's descend and lift motions."""
     tcp_max_force: float = 200.0
@@ -256,7 +258,8 @@ class ReplayConfig:
     seed_from: str = ""
     """An earlier replay (RUN or RUN/replay) whose newest readable trials, up to capacity, a new run's
     replay starts with (sampled like the run's own; not counted in its trials, epsilon schedule or
-    rate limit); "" = an empty start. A resumed run ignores it."""
+    rate limit); "" = an empty start. A resume keeps the recorded value: one that sets a different
+    seed_from is refused."""
 
 
 @dataclass
@@ -314,7 +317,8 @@ class ActorConfig:
     weights_poll_episodes: int = 1
     """Episodes between non-blocking checks for newer weights."""
     policy: str = "adagrasp"
-    """Training-time action selection: adagrasp | fix-gripper | fix-config | random | heuristic."""
+    """Not read: training actors act in fix-gripper mode, epsilon-greedy. Kept so that earlier
+    configs and checkpoints, which record it, load."""
 
 
 @dataclass
@@ -322,7 +326,9 @@ class RunConfig:
     """One run: seed, limits, where it lives."""
 
     seed: int = 0
-    """Root seed; actor k uses numpy SeedSequence(seed).spawn(...)[k]."""
+    """Root seed; actor k draws from numpy SeedSequence([seed, k]), or SeedSequence([seed, k,
+    trials committed so far]) in a resumed run; a restarted Ray actor uses seed + 7919 x its
+    incarnation in place of seed."""
     run_dir: str = "runs"
     """Parent folder of run directories (a run gets runs/<timestamp>)."""
     max_trials: int = 0

@@ -9,9 +9,11 @@ Run directory layout::
     RUN/config.yaml            resolved config
     RUN/replay/shard_XXX/      Zarr v3 groups, one writer each
     RUN/checkpoints/latest.pt  model, optimiser, step, epsilon, config, replay position
-    RUN/progress.jsonl         one JSON line per progress tick
+    RUN/progress.jsonl         one JSON line about every 5 s, and one at exit
     RUN/tb/                    TensorBoard logs
     RUN/summary.json           written at exit; earlier parts' kept (see with_earlier_parts)
+    RUN/history.json           (step, loss) of every learner step; written when a Ray run
+                               (--actors N >= 1) ends, after its final checkpoint; not by --actors 0
 """
 
 from __future__ import annotations
