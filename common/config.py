@@ -277,7 +277,8 @@ class LearnerConfig:
     epsilon_end: float = 0.2
     """Exploration epsilon after epsilon_decay_trials."""
     epsilon_decay_trials: int = 2000
-    """Collected trials over which epsilon falls linearly."""
+    """Collected trials over which epsilon falls linearly (a laptop budget; the paper's 2,000
+    epochs of 8 trials are 16,000, configs/paper.yaml)."""
     samples_per_insert: float = 32.0
     """Learner samples (trials) drawn per inserted trial; paper: 32 x 8 samples per 8 trials."""
     min_replay: int = 32

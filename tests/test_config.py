@@ -86,3 +86,14 @@ def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
             load_config("default", overrides=[bad])
     with pytest.raises(ConfigError, match=r"^--set: learner\.lr: expected a value in \["):
         load_config("default", overrides=["learner.lr=.nan"])
+
+
+def test_paper_config_explores_over_the_papers_2000_epochs_of_8_trials():
+    """The paper's epsilon falls 0.8 -> 0.2 over 2,000 epochs; one epoch collects one trial in
+    each of its 8 environments, so the schedule spans 16,000 trials."""
+    from learner.learner import epsilon_at
+
+    cfg = load_config("paper")
+    assert epsilon_at(cfg, 0) == pytest.approx(0.8)
+    assert epsilon_at(cfg, 8 * 1000) == pytest.approx(0.5)
+    assert epsilon_at(cfg, 8 * 2000) == pytest.approx(0.2) == epsilon_at(cfg, 10**6)
