@@ -718,6 +718,13 @@ def table_markdown(results: list[tuple[str, dict]], runs: bool = False) -> str:
     for p in rows:
         vals = [_fmt(_mean_rate(cells[(p, c)])) if (p, c) in cells else "–" for c in columns]
         lines.append(f"| {p} | " + " | ".join(vals) + " |")
+    for c in columns:
+        scenes = {p: len({seed for _, s in cells[(p, c)] for seed in s["scene_seeds"]})
+                  for p in rows if (p, c) in cells}
+        if len(set(scenes.values())) > 1:
+            counts = ", ".join(f"{p} {n}" for p, n in scenes.items())
+            lines += ["", f"Rows of {_column_title(c)} ran on different numbers of scenes ({counts}); "
+                      "`evaluate compare` pairs two rows on the scenes both ran."]
     several = {k: v for k, v in cells.items() if len(v) > 1}
     if several:
         lines += ["", "Cells of several training runs: the mean of the runs' rates (each run's rate over its scenes).",

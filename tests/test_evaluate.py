@@ -405,6 +405,17 @@ def test_table_merges_results_in_the_papers_layout(scripted, tmp_path):
     assert all(f"| {p} |" in md.read_text() for p in files), "every source is listed"
 
 
+def test_table_says_when_rows_of_a_column_ran_on_different_scenes(scripted, tmp_path):
+    """Rows of one column measured on different numbers of scenes (e.g. adagrasp on 100, the
+    other rows on 20) get a note under the table; rows on the same scenes get none."""
+    single, single_path = scripted("single", "heuristic")
+    rnd, rnd_path = scripted("single", "random")
+    assert "different numbers of scenes" not in ev.table([str(single_path), str(rnd_path)])
+    one = relabel(rnd, tmp_path, "one", scene_seeds=rnd["scene_seeds"][:1], episodes=1)
+    md = ev.table([str(single_path), str(one)])
+    assert "Rows of single O_tr/G_" in md and "(random 1, heuristic 2)" in md, md
+
+
 def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys):
     single, single_path = scripted("single", "heuristic")
     two = relabel(single, tmp_path, "two", cameras=2, rate=0.5)
