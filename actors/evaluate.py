@@ -718,13 +718,18 @@ def table_markdown(results: list[tuple[str, dict]], runs: bool = False) -> str:
     for p in rows:
         vals = [_fmt(_mean_rate(cells[(p, c)])) if (p, c) in cells else "–" for c in columns]
         lines.append(f"| {p} | " + " | ".join(vals) + " |")
+    odd = []
     for c in columns:
         scenes = {p: len({seed for _, s in cells[(p, c)] for seed in s["scene_seeds"]})
                   for p in rows if (p, c) in cells}
-        if len(set(scenes.values())) > 1:
-            counts = ", ".join(f"{p} {n}" for p, n in scenes.items())
-            lines += ["", f"Rows of {_column_title(c)} ran on different numbers of scenes ({counts}); "
-                      "`evaluate compare` pairs two rows on the scenes both ran."]
+        counts = list(scenes.values())
+        usual = max(counts, key=counts.count)
+        if len(set(counts)) > 1:
+            other = ", ".join(f"{p} {n}" for p, n in scenes.items() if n != usual)
+            odd.append(f"{_column_title(c)}: {other} (the other rows {usual})")
+    if odd:
+        lines += ["", "Rows on another number of scenes than the rest of their column (`evaluate compare` pairs "
+                  "two rows on the scenes both ran): " + "; ".join(odd) + "."]
     several = {k: v for k, v in cells.items() if len(v) > 1}
     if several:
         lines += ["", "Cells of several training runs: the mean of the runs' rates (each run's rate over its scenes).",
