@@ -484,6 +484,22 @@ def run_distributed(
     for a in range(n_actors):
         submit(a)
     learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
+
+    def learner_lost(e: Exception) -> None:
+        """The learner's process died (its train chunk or a checkpoint call failed): count it, wait
+        for the process Ray restarts from latest.pt, take its first weights (numbered after those
+        the actors hold) and start its next chunk; past LEARNER_RESTARTS, raise ``e``."""
+        nonlocal learner_restarts, stats, version, box, published, learner_future
+        if learner_restarts >= LEARNER_RESTARTS:
+            raise e
+        learner_restarts += 1
+        print(f"learner: process lost ({type(e).__name__}); it restarts from its last checkpoint and continues",
+              flush=True)
+        stats = _first_call_after_restart(lambda: learner.train.remote(0, force_publish=True, after_version=version))
+        version, box = stats["weights"]
+        published += 1
+        learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
+
     t0 = last_ckpt = time.time()
     try:
         while not _done(cfg, inserted, t0, stop):
@@ -493,14 +509,8 @@ def run_distributed(
                     try:
                         stats = ray.get(ref)
                     except RayActorError as e:
-                        if learner_restarts >= LEARNER_RESTARTS:
-                            raise
-                        learner_restarts += 1
-                        print(f"learner: process lost ({type(e).__name__}); it restarts from its last checkpoint "
-                              f"and continues", flush=True)
-                        stats = _first_call_after_restart(
-                            lambda: learner.train.remote(0, force_publish=True, after_version=version)
-                        )
+                        learner_lost(e)
+                        continue
                     if stats["weights"] is not None:
                         version, box = stats["weights"]
                         published += 1
@@ -523,10 +533,13 @@ def run_distributed(
                 submit(a)
             progress.tick(inserted, stats, epsilon_at(cfg, inserted))
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:
-                ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, snapshot=True,
-                                                  next_episode=next_episode))
-                progress.add_score_maps(ray.get(learner.score_map_image.remote()))
-                last_ckpt = time.time()
+                try:
+                    ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, snapshot=True,
+                                                      next_episode=next_episode))
+                    progress.add_score_maps(ray.get(learner.score_map_image.remote()))
+                    last_ckpt = time.time()
+                except RayActorError as e:
+                    learner_lost(e)  # and the checkpoint is taken at the next tick
     finally:
         # Let every running chunk finish its episode (no partial trials), then checkpoint.
         ray.wait(list(pending), num_returns=len(pending), timeout=120)
@@ -547,9 +560,12 @@ def run_distributed(
             # learner, alive or restarted from latest.pt, still writes the final checkpoint.
             print(f"learner: last chunk failed ({type(e).__name__}); writing the checkpoint", flush=True)
         try:
-            inserted = ray.get(learner.inserted.remote())
-            ckpt = ray.get(learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, next_episode=next_episode))
-            history = ray.get(learner.history.remote())
+            # a learner lost at the end is still restarting: wait for it to write the checkpoint
+            inserted = _first_call_after_restart(lambda: learner.inserted.remote())
+            ckpt = _first_call_after_restart(
+                lambda: learner.checkpoint.remote(epsilon_at(cfg, inserted), inserted, next_episode=next_episode)
+            )
+            history = _first_call_after_restart(lambda: learner.history.remote())
             progress.tick(inserted, stats, epsilon_at(cfg, inserted), force=True)
         finally:
             progress.close()

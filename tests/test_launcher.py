@@ -166,8 +166,9 @@ def _policy_versions(run_dir: Path) -> list[int]:
 
 def test_a_lost_learner_process_restarts_and_the_actors_take_its_new_weights(tmp_path):
     """The learner's process dies with no checkpoint written yet: Ray restarts it, it starts again
-    from the initial weights, and the run goes on. Its weights are numbered after those the actors
-    hold, so the actors load them (numbered from 1 again, they would be ignored as old)."""
+    from the initial weights, and the run goes on to its limit; the actors take the restarted
+    learner's weights (their numbering: test_learner's after_version test) and the final
+    checkpoint counts every committed trial."""
     hook = tmp_path / "hook"
     hook.mkdir()
     (hook / "sitecustomize.py").write_text(LOST_LEARNER)

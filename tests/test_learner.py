@@ -594,3 +594,16 @@ def test_after_a_crash_a_resumed_run_numbers_its_episodes_after_those_the_replay
     third = {k: v for k, v in after.items() if k not in before}
     assert third and min(e for _, e in third) == max(e for _, e in before) + 1, (sorted(before), sorted(third))
     assert all(after[k] == v for k, v in before.items()), "earlier trials keep their episode numbers"
+
+
+def test_a_restarted_learner_numbers_its_weights_after_those_the_actors_hold(filled_replay, tmp_path):
+    """train(..., after_version=V) publishes a version above V (the actors load only a version
+    newer than theirs), and never numbers back below the learner's own."""
+    from learner.loop import LearnerProcess
+
+    cfg, client = filled_replay
+    proc = LearnerProcess(cfg, client._shards, str(tmp_path / "run"), seed=0, torch_threads=1)
+    assert proc.train(0, force_publish=True)["weights"][0] == 1
+    assert proc.train(0, force_publish=True, after_version=7)["weights"][0] == 8
+    assert proc.train(0, force_publish=True, after_version=3)["weights"][0] == 9
+    assert proc.train(0)["weights"] is None, "after_version publishes nothing by itself"
