@@ -108,6 +108,9 @@ class LearnerProcess:
                 "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
             })
             self.resumed_from = c.step
+            # after a crash the replay may hold trials of weights published after the checkpoint:
+            # number the next weights after those, so that a version names one set of weights
+            self.learner.stats.version = max(self.learner.stats.version, self.replay.run_marks()["policy_version"])
             self.next_episode = [int(e) for e in c.extra.get("replay", {}).get("next_episode", [])]
             self.init_source = portable_init_source(c.extra.get("init_weights"))
         else:
@@ -233,7 +236,7 @@ class LearnerProcess:
         at least, and for every id the checkpoint recorded (a part with fewer actors keeps the
         numbers of the others for a later part). After a crash the replay may hold episodes
         committed after the last checkpoint: numbering starts after those too."""
-        ends = self.replay.episode_ends()
+        ends = self.replay.run_marks()["episode_ends"]
         n = max(n_actors, len(self.next_episode), max(ends, default=-1) + 1)
         recorded = self.next_episode + [0] * (n - len(self.next_episode))
         return [max(recorded[a], ends.get(a, 0)) for a in range(n)]

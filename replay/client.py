@@ -329,14 +329,16 @@ class ReplayClient:
         """Readable visible trials over all shards."""
         return int(sum(self._backend.get([self._backend.submit(s, "size") for s in self._shards])))
 
-    def episode_ends(self) -> dict[int, int]:
-        """Per actor id, one past the largest episode number among the run's visible trials over
-        all shards (see ReplayShard.episode_ends)."""
+    def run_marks(self) -> dict:
+        """:meth:`ReplayShard.run_marks` over all shards: ``episode_ends`` {actor id: one past its
+        largest episode number} and the largest ``policy_version`` (-1: none)."""
         ends: dict[int, int] = {}
-        for part in self._backend.get([self._backend.submit(s, "episode_ends") for s in self._shards]):
-            for a, e in part.items():
+        version = -1
+        for part in self._backend.get([self._backend.submit(s, "run_marks") for s in self._shards]):
+            for a, e in part["episode_ends"].items():
                 ends[int(a)] = max(ends.get(int(a), 0), int(e))
-        return ends
+            version = max(version, int(part["policy_version"]))
+        return {"episode_ends": ends, "policy_version": version}
 
     def stats(self) -> dict:
         """Per-shard counters and totals, plus this client's counters."""

@@ -1037,16 +1037,19 @@ class ReplayShard:
             "problems": list(self._problems),
         }
 
-    def episode_ends(self) -> dict[int, int]:
-        """Per actor id, one past the largest episode number among this run's visible trials
-        (trials a new replay was seeded with are left out): where a resumed run's episode
-        numbers must start when trials were committed after its last checkpoint."""
+    def run_marks(self) -> dict:
+        """Where a resumed run's numbers must start when trials were committed after its last
+        checkpoint, from this run's visible trials (trials a new replay was seeded with are left
+        out): ``episode_ends`` {actor id: one past its largest episode number} and
+        ``policy_version``, the largest weights version a trial was collected with (-1: none)."""
         ids = self.visible_ids()
         ends: dict[int, int] = {}
+        version = -1
         for text in self._col["meta"][ids[ids >= self.seeded_trials] % self.slots]:
             meta = meta_from_json(str(text))
             ends[meta.actor_id] = max(ends.get(meta.actor_id, 0), meta.episode_id + 1)
-        return ends
+            version = max(version, meta.policy_version)
+        return {"episode_ends": ends, "policy_version": version}
 
     def problems(self) -> list[str]:
         """One line per unreadable chunk or lost trial found so far."""

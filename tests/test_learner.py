@@ -594,6 +594,22 @@ def test_after_a_crash_a_resumed_run_numbers_its_episodes_after_those_the_replay
     third = {k: v for k, v in after.items() if k not in before}
     assert third and min(e for _, e in third) == max(e for _, e in before) + 1, (sorted(before), sorted(third))
     assert all(after[k] == v for k, v in before.items()), "earlier trials keep their episode numbers"
+    versions = _versions(run)
+    crashed = max(v for k, v in versions.items() if k in before)
+    assert crashed > 1 and min(v for k, v in versions.items() if k in third) > crashed, (
+        "the resumed part's weights are numbered after those of trials committed after the checkpoint")
+
+
+def _versions(run):
+    """{(actor_id, episode_id): weights version} of every stored trial."""
+    out = {}
+    for path in find_shards(run / "replay"):
+        shard = ReplayShard(path, read_only=True)
+        for t in shard.visible_ids():
+            m = shard.get_trial(int(t)).meta
+            out[(m.actor_id, m.episode_id)] = m.policy_version
+        shard.close()
+    return out
 
 
 def test_a_restarted_learner_numbers_its_weights_after_those_the_actors_hold(filled_replay, tmp_path):

@@ -132,16 +132,16 @@ def test_fifo_order_single_shard(tmp_path):
     assert again.visible_ids().tolist() == list(range(10, 16))
 
 
-def test_episode_ends_per_actor_over_shards(tmp_path):
-    """One past each actor's largest stored episode number, over every shard (a resumed run
-    numbers its episodes from there)."""
+def test_run_marks_over_shards(tmp_path):
+    """One past each actor's largest stored episode number and the largest weights version, over
+    every shard (a resumed run numbers its episodes and weights from there)."""
     cfg = tiny_cfg(capacity=8, shards=2)
     client = ReplayClient(open_local_shards(tmp_path / "r", cfg), cfg, seed=0)
-    assert client.episode_ends() == {}
+    assert client.run_marks() == {"episode_ends": {}, "policy_version": -1}
     for i, (actor, episode) in enumerate([(0, 4), (3, 9), (0, 7), (3, 2), (0, 5)]):
-        client.insert(make_trial(cfg, i, actor_id=actor, episode_id=episode))
+        client.insert(make_trial(cfg, i, actor_id=actor, episode_id=episode, policy_version=10 - i))
     client.flush()
-    assert client.episode_ends() == {0: 8, 3: 10}
+    assert client.run_marks() == {"episode_ends": {0: 8, 3: 10}, "policy_version": 10}
 
 
 def test_obstacle_chunk_only_where_there_is_an_obstacle(tmp_path):

@@ -82,11 +82,11 @@ def test_seeded_replay_holds_the_source_trials_as_stored(tmp_path):
     assert root["seeded_trials"] == 7 and root["seeded_from"] == report["seeded_from"]
     client = ReplayClient(shards, cfg, seed=1)
     assert total_inserted(client) == 0, "seeded trials are not this run's trials"
-    assert client.episode_ends() == {}, "the source run's episode numbers do not number this run's"
+    assert client.run_marks() == {"episode_ends": {}, "policy_version": -1}, "the source run's episode numbers do not number this run's"
     client.insert(numbered_trial(cfg, 100).validate())
     client.flush()
     assert total_inserted(client) == 1 and client.size() == 8
-    assert client.episode_ends() == {0: 101}
+    assert client.run_marks()["episode_ends"] == {0: 101}
     for s in shards:
         s.close()
 
