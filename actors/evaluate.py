@@ -768,11 +768,11 @@ def table_markdown(results: list[tuple[str, dict]], runs: bool = False) -> str:
 
 
 _REQUIRED = ("format", "policy", "scene", "objects", "objects_label", "grippers_label", "grippers", "cameras", "rate",
-             "episodes", "seed", "average", "per_gripper")
+             "episodes", "seed", "scene_seeds", "average", "per_gripper")
 
 _TYPES = {
     "rate": ((int, float), "a number"), "episodes": (int, "an integer"), "cameras": (int, "an integer"),
-    "average": (dict, "an object"), "per_gripper": (dict, "an object"),
+    "average": (dict, "an object"), "per_gripper": (dict, "an object"), "scene_seeds": (list, "a list"),
 }
 """Keys of a result whose value a reader computes with: the JSON type each must have, in words."""
 

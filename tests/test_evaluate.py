@@ -432,12 +432,17 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
     list_average = relabel(single, tmp_path, "list_average", average=[])
     no_objects = tmp_path / "no_objects.json"
     no_objects.write_text(json.dumps({k: v for k, v in single.items() if k != "objects"}))
+    no_scenes = tmp_path / "no_scenes.json"
+    no_scenes.write_text(json.dumps({k: v for k, v in single.items() if k != "scene_seeds"}))
+    seeds_number = relabel(single, tmp_path, "seeds_number", scene_seeds=3)
     md = tmp_path / "never.md"
     for files, needle in (([single_path, dup], "the same cell is already in"), ([bad], "not valid JSON"),
                           ([old], "format: expected"), ([tmp_path / "gone.json"], "gone.json: file not found"),
                           ([word_rate], "word_rate.json: rate: expected a number, got 'abc'"),
                           ([list_average], "list_average.json: average: expected an object, got []"),
-                          ([no_objects], "no_objects.json: objects: missing")):
+                          ([no_objects], "no_objects.json: objects: missing"),
+                          ([no_scenes], "no_scenes.json: scene_seeds: missing"),
+                          ([seeds_number], "seeds_number.json: scene_seeds: expected a list, got 3")):
         assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and needle in err
