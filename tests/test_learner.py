@@ -539,16 +539,22 @@ def test_a_run_directory_that_is_a_file_or_holds_an_unreadable_replay_root_is_re
 
 
 
+def _metas(run):
+    """The TrialMeta of every stored trial of the run."""
+    for path in find_shards(run / "replay"):
+        shard = ReplayShard(path, read_only=True)
+        try:
+            yield from (shard.get_trial(int(t)).meta for t in shard.visible_ids())
+        finally:
+            shard.close()
+
+
 def _episodes(run):
     """{(actor_id, episode_id): (gripper, scale, openings, episode seed)} of every stored trial."""
     out = {}
-    for path in find_shards(run / "replay"):
-        shard = ReplayShard(path, read_only=True)
-        for t in shard.visible_ids():
-            m = shard.get_trial(int(t)).meta
-            draw = (m.gripper, m.gripper_scale, m.openings, m.seed)
-            assert out.setdefault((m.actor_id, m.episode_id), draw) == draw, "one episode, one draw"
-        shard.close()
+    for m in _metas(run):
+        draw = (m.gripper, m.gripper_scale, m.openings, m.seed)
+        assert out.setdefault((m.actor_id, m.episode_id), draw) == draw, "one episode, one draw"
     return out
 
 
@@ -602,14 +608,7 @@ def test_after_a_crash_a_resumed_run_numbers_its_episodes_after_those_the_replay
 
 def _versions(run):
     """{(actor_id, episode_id): weights version} of every stored trial."""
-    out = {}
-    for path in find_shards(run / "replay"):
-        shard = ReplayShard(path, read_only=True)
-        for t in shard.visible_ids():
-            m = shard.get_trial(int(t)).meta
-            out[(m.actor_id, m.episode_id)] = m.policy_version
-        shard.close()
-    return out
+    return {(m.actor_id, m.episode_id): m.policy_version for m in _metas(run)}
 
 
 def test_a_restarted_learner_numbers_its_weights_after_those_the_actors_hold(filled_replay, tmp_path):
