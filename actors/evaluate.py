@@ -625,13 +625,19 @@ def summarise(plan: EvalPlan, results: list[dict], argv: list[str], grippers: st
     }
 
 
+def policy_opening_rule(policy: str) -> str | None:
+    """How ``policy`` chooses its opening now (its LearnedPolicy mode's :data:`OPENING_RULES`);
+    None for the scripted policies."""
+    return OPENING_RULES[LEARNED[policy][1]] if policy in LEARNED else None
+
+
 def opening_rule(summary: dict) -> str | None:
     """How a learned policy's result chose its opening: ``random`` (one drawn per attempt),
     ``best`` or ``first`` (:data:`EARLIER_OPENING_RULES`); None for the scripted policies."""
     policy = summary["policy"]
     if policy not in LEARNED:
         return None
-    return summary.get("opening_rule") or EARLIER_OPENING_RULES.get(policy) or OPENING_RULES[LEARNED[policy][1]]
+    return summary.get("opening_rule") or EARLIER_OPENING_RULES.get(policy) or policy_opening_rule(policy)
 
 
 def row_label(summary: dict) -> str:
@@ -641,7 +647,7 @@ def row_label(summary: dict) -> str:
     if policy == "adagrasp" and summary.get("calibration"):
         return CALIBRATED
     rule = opening_rule(summary)
-    if policy in EARLIER_OPENING_RULES and rule != OPENING_RULES[LEARNED[policy][1]]:
+    if policy in EARLIER_OPENING_RULES and rule != policy_opening_rule(policy):
         return f"{policy} ({rule} opening)"
     return policy
 
@@ -907,7 +913,7 @@ def evaluate(argv: list[str]) -> dict:
         "checkpoint_variant": plan.model_cfg.model.variant if plan.model_cfg is not None else None,
         "checkpoint_version": plan.model_version if plan.model_cfg is not None else None,
         "checkpoint_sha256": plan.model_sha256,
-        "opening_rule": OPENING_RULES[LEARNED[args.policy][1]] if args.policy in LEARNED else None,
+        "opening_rule": policy_opening_rule(args.policy),
         "calibration": plan.calibration.to_dict() if plan.calibration is not None else None,
         "actors": args.actors,
         "wall_s": time.perf_counter() - t0,

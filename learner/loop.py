@@ -91,6 +91,10 @@ class LearnerProcess:
         self.next_episode: list[int] = []
         """Per actor id, the number its next episode takes: recorded in every checkpoint, so that a
         resumed run numbers its episodes after the earlier parts' ((actor_id, episode_id) is unique)."""
+        marks = self.replay.run_marks()  # read once: it parses every stored trial's metadata
+        self.stored_episode_ends: dict[int, int] = marks["episode_ends"]
+        """Per actor id, one past the largest episode number the replay holds (after a crash,
+        trials committed since the last checkpoint are among them)."""
         self.init_source: dict | None = None
         """Where a fine-tuned run's first weights came from (learner.init_weights, the file: inside
         the package for a shipped model, else absolute; its step and version); written into every
@@ -110,7 +114,7 @@ class LearnerProcess:
             self.resumed_from = c.step
             # after a crash the replay may hold trials of weights published after the checkpoint:
             # number the next weights after those, so that a version names one set of weights
-            self.learner.stats.version = max(self.learner.stats.version, self.replay.run_marks()["policy_version"])
+            self.learner.stats.version = max(self.learner.stats.version, marks["policy_version"])
             self.next_episode = [int(e) for e in c.extra.get("replay", {}).get("next_episode", [])]
             self.init_source = portable_init_source(c.extra.get("init_weights"))
         else:
@@ -236,7 +240,7 @@ class LearnerProcess:
         at least, and for every id the checkpoint recorded (a part with fewer actors keeps the
         numbers of the others for a later part). After a crash the replay may hold episodes
         committed after the last checkpoint: numbering starts after those too."""
-        ends = self.replay.run_marks()["episode_ends"]
+        ends = self.stored_episode_ends
         n = max(n_actors, len(self.next_episode), max(ends, default=-1) + 1)
         recorded = self.next_episode + [0] * (n - len(self.next_episode))
         return [max(recorded[a], ends.get(a, 0)) for a in range(n)]
