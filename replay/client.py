@@ -34,9 +34,6 @@ from replay.sampler import BufferPool, draw_balanced, draw_counts
 from replay.schema import ReplayEmptyError, ReplayError, ReplaySchemaError, encode_trial, scene_scales
 from replay.shard import ReplayShard, check_shards, ensure_root, shard_path
 
-SAMPLE_ROUNDS = 4
-"""Draw rounds per batch when trials are evicted or found corrupt between index and read."""
-
 
 @dataclass
 class ReplayBatch:
@@ -226,7 +223,7 @@ class ReplayClient:
         parts: dict[int, dict] = {}
         pos, balanced = draw_balanced(labels, scores, batch_size, self._rng)
         chosen = np.empty(0, np.int64)
-        for round_ in range(SAMPLE_ROUNDS):
+        while True:  # every round excludes its unreadable trials for good, so the rounds end
             got = self._read(shard_of, ids, pos, parts)
             excluded[pos[~got]] = True
             chosen = np.concatenate([chosen, pos[got]])
@@ -234,16 +231,13 @@ class ReplayClient:
             if not len(lost):
                 break
             self.counters["redraws"] += 1
-            if round_ == SAMPLE_ROUNDS - 1:
-                raise ReplayEmptyError(
-                    f"replay: could not read {len(lost)} of {batch_size} trials after {SAMPLE_ROUNDS} draws"
-                )
+            need_success, need_failure = int(labels[lost].sum()), int((~labels[lost]).sum())
             taken = excluded.copy()
             taken[chosen] = True
-            enough = (~taken & labels).sum() >= labels[lost].sum() and (~taken & ~labels).sum() >= (~labels[lost]).sum()
-            pos, ok = draw_counts(
-                labels, scores, int(labels[lost].sum()), int((~labels[lost]).sum()), self._rng,
-                exclude=taken if enough else excluded,
+            # a class with enough untaken trials draws without repeats; a short one may repeat
+            short = np.where(labels, (~taken & labels).sum() < need_success, (~taken & ~labels).sum() < need_failure)
+            pos, ok = draw_counts(  # ReplayEmptyError once every trial is excluded
+                labels, scores, need_success, need_failure, self._rng, exclude=excluded | (taken & ~short),
             )
             balanced &= ok
         self.counters["samples"] += 1

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import warnings
 from collections import defaultdict
@@ -64,16 +65,25 @@ def trial_table(readers: list[ReplayShard]) -> dict[str, np.ndarray]:
     return {k: v[order] for k, v in out.items()}
 
 
+def _natural(value) -> tuple:
+    """Sort key: numbers inside a name compare as numbers (version 2 before 10); seeded last."""
+    text = str(value)
+    return text.endswith("(seeded)"), [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", text)]
+
+
 def _rates(groups: dict[str, list[bool]]) -> dict[str, dict]:
     return {
         str(k): {"trials": len(v), "success_rate": float(np.mean(v)) if v else None}
-        for k, v in sorted(groups.items(), key=lambda kv: str(kv[0]))
+        for k, v in sorted(groups.items(), key=lambda kv: _natural(kv[0]))
     }
 
 
 def summarize(path: str | Path) -> dict:
-    """Everything ``inspect`` reports, as a JSON-ready dict."""
+    """Everything ``inspect`` reports, as a JSON-ready dict. Every visible trial's chunks are read
+    first, so unreadable ones are counted and listed, not summarised."""
     readers = open_readers(path)
+    for r in readers:
+        r.verify()
     table = trial_table(readers)
     metas = [json.loads(str(m)) for m in table["meta"]]
     labels = table["label"].tolist()

@@ -728,8 +728,11 @@ class ReplayShard:
                 f"{w}: gripper_encoding: shape {rec.gripper.shape[1:]}, shard {self.path} stores {self.gripper_shape}"
             )
         i, j, k, s = rec.action
-        if not (0 <= i < x and 0 <= j < y and k >= 0 and s >= 0):
+        if not (0 <= i < x and 0 <= j < y and s >= 0):
             raise ReplayInputError(f"{w}: action: {rec.action} outside the scene grid {(x, y)}")
+        rotations = int(self.attrs["rotations"])
+        if not 0 <= k < rotations:
+            raise ReplayInputError(f"{w}: action: rotation {k} outside the shard's {rotations} rotations")
 
     def insert(self, trial) -> int:
         """Quantise and store a :class:`common.observation.Trial`; returns its trial number in this shard."""
@@ -754,7 +757,6 @@ class ReplayShard:
         if new_row:
             row = heapq.heappop(self._free_rows)
         col = self._col
-        old_obstacle = int(col["obstacle_voxels"][slot])
         col["trial_id"][slot] = n
         col["obstacle_voxels"][slot] = rec.obstacle_voxels
         col["insert_time"][slot] = time.time()
@@ -775,8 +777,8 @@ class ReplayShard:
             io["tsdf"].write(slot, rec.tsdf[None])
             if rec.obstacle is not None:
                 io["obstacle"].write(slot, rec.obstacle[None])
-            elif old_obstacle != 0:
-                io["obstacle"].delete(slot)  # the previous trial's obstacle chunk; no chunk reads as 0
+            else:  # a chunk left by the slot's previous trial, or by a write cut off before its commit
+                io["obstacle"].delete(slot)
             io["surface"].write(slot, rec.surface[None])
             for name in COLUMN_NAMES:
                 self._column_write(name, slot)
@@ -882,7 +884,11 @@ class ReplayShard:
         return self._col[name][ids % self.slots]
 
     def _mark_corrupt(self, name: str, trial: int, index: int, err: str) -> str:
-        """Remember an unreadable trial (warned once); returns the one-line description."""
+        """Remember an unreadable trial (warned once); returns the one-line description. An
+        unreadable gripper-table row is not reused: the next trial of its gripper writes a new row."""
+        if name == "gripper_table":
+            for key in [k for k, r in self._row_of.items() if r == index]:
+                del self._row_of[key]
         line = f"{self.path}/{name}: chunk {index} of trial {trial} unreadable ({err})"
         if trial not in self._corrupt:
             self._corrupt[trial] = line
@@ -980,6 +986,20 @@ class ReplayShard:
             levels=self.levels,
             where=f"{self.path}: trial {t}",
         )
+
+    def verify(self) -> int:
+        """Read every visible trial's volume chunks (checksum, decompression); an unreadable one is
+        marked corrupt like a failed sample read (warned once, counted in stats, no longer visible).
+        Returns how many were found."""
+        found = 0
+        for t in self.visible_ids().tolist():
+            try:
+                self.encoded(t, (-1, t))
+            except ReplayCorruptError:
+                found += 1
+            except ReplayError:
+                pass  # evicted by a live writer meanwhile
+        return found
 
     def get_trial(self, trial_id: int) -> StoredTrial:
         """One complete trial, decoded; ReplayError if not visible, ReplayCorruptError if unreadable."""

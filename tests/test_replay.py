@@ -288,6 +288,8 @@ def test_second_writer_is_refused(tmp_path):
          lambda t: setattr(t.observation, "tsdf", t.observation.tsdf.astype(np.float64))),
         ("observation.valid", lambda t: setattr(t.observation, "valid", t.observation.valid.astype(np.uint8))),
         ("action: (48, ", lambda t: setattr(t, "action", (48,) + tuple(t.action[1:]))),
+        ("action: rotation 16 outside the shard's 16 rotations",
+         lambda t: setattr(t, "action", tuple(t.action[:2]) + (16, t.action[3]))),
         ("gripper_encoding: 4 openings, meta.openings has 5",
          lambda t: setattr(t, "gripper_encoding", t.gripper_encoding[:-1])),
     ],
@@ -460,6 +462,52 @@ def test_corrupt_volume_chunk_only_loses_that_trial(tmp_path):
     assert "missing" in one_line(e)
 
 
+def test_unreadable_gripper_row_is_not_reused_by_later_trials(tmp_path):
+    """One damaged gripper-table chunk loses the trials that share it, not every later trial of
+    that gripper: once found unreadable, the next insert of its key writes a fresh row."""
+    cfg = tiny_cfg(capacity=8)
+    openings = (0.5, 1.0)
+    enc = synthetic_gripper_encoding(cfg.gripper_grid, openings)
+
+    def trial(i):  # one gripper, scale and openings: one table key
+        t = make_trial(cfg, i, gripper="wsg_50", scale=1.0, openings=openings, encoding=enc)
+        t.action = tuple(t.action[:3]) + (0,)
+        return t
+
+    shard = ReplayShard(tmp_path / "s", cfg)
+    old = [shard.insert(trial(i)) for i in range(3)]
+    row = int(shard.column("gripper_row", old[:1])[0])
+    _chunk_file(tmp_path / "s", "gripper_table", row).write_bytes(b"bit rot")
+    with pytest.warns(ReplayCorruptWarning, match="gripper_table"):
+        assert shard.read(old)["trial_id"].tolist() == []
+    new = [shard.insert(trial(i)) for i in range(3, 6)]
+    assert row not in shard.column("gripper_row", new).tolist()
+    assert shard.read(new)["trial_id"].tolist() == new
+    stored = shard.get_trial(new[0]).gripper_encoding
+    assert np.abs(stored - enc[0]).max() <= 1.0 / cfg.replay.tsdf_levels + 1e-6  # opening index 0
+    assert shard.stats()["corrupt"] == len(old)
+
+
+def test_insert_without_obstacle_removes_a_cut_off_writes_obstacle_chunk(tmp_path):
+    """A writer killed after writing a slot's obstacle chunk but before its commit leaves that
+    chunk behind; the next trial in the slot without an obstacle must remove it, or plain-zarr
+    readers of ``obstacle`` see the killed trial's obstacle for a trial that has none."""
+    cfg = tiny_cfg(capacity=2)  # a ring of 3 slots
+    shard = ReplayShard(tmp_path / "s", cfg)
+    shard.insert(make_trial(cfg, 0, n_objects=2, n_obstacles=2))
+    chunk = _chunk_file(tmp_path / "s", "obstacle", 0).read_bytes()
+    for i in (1, 2, 3):  # no obstacle; trial 3 takes slot 0 and removes trial 0's chunk
+        shard.insert(make_trial(cfg, i))
+    shard.close()
+    left = _chunk_file(tmp_path / "s", "obstacle", 1)  # slot 1 held trial 1, which had no obstacle
+    left.write_bytes(chunk)  # what a writer killed while inserting trial 4 with an obstacle leaves
+    shard = ReplayShard(tmp_path / "s", cfg)
+    assert shard.insert(make_trial(cfg, 4)) == 4  # slot 1, no obstacle
+    assert not left.exists()
+    g = zarr.open_group(str(tmp_path / "s"), mode="r")
+    assert not g["obstacle"][1].any() and int(g["obstacle_voxels"][1]) == 0 and int(g["trial_id"][1]) == 4
+
+
 def test_corrupt_column_chunk_loses_only_its_trials(tmp_path):
     cfg = tiny_cfg(capacity=12, chunk=4)
     shard = ReplayShard(tmp_path / "s", cfg)
@@ -558,6 +606,27 @@ def test_sample_batch_tensors_and_score_write_back(tmp_path):
     with pytest.raises(ReplayInputError) as e:
         again[0].update_scores([int(again[0].visible_ids()[0])], [float("nan")])
     assert "update_scores.scores" in one_line(e)
+
+
+def test_sampling_redraws_past_many_unreadable_trials(tmp_path):
+    """Sampling redraws until its batch is read, however many unreadable trials it meets on the
+    way, and raises ReplayEmptyError only once no readable trial is left."""
+    cfg = tiny_cfg(capacity=40)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    for i in range(40):
+        shard.insert(make_trial(cfg, i, label=bool(i % 2)))
+    for t in range(30):  # 10 readable trials remain, 5 of each class
+        _chunk_file(tmp_path / "s", "tsdf", t).write_bytes(b"x")
+    for seed in range(10):
+        client = ReplayClient([ReplayShard(tmp_path / "s", read_only=True)], cfg, seed=seed)
+        with pytest.warns(ReplayCorruptWarning):
+            b = client.sample(8)
+        assert set(b.index[:, 1].tolist()) <= set(range(30, 40)) and b.label.sum().item() == 4
+    for t in range(30, 40):
+        _chunk_file(tmp_path / "s", "tsdf", t).write_bytes(b"x")
+    client = ReplayClient([ReplayShard(tmp_path / "s", read_only=True)], cfg, seed=0)
+    with pytest.raises(ReplayEmptyError), pytest.warns(ReplayCorruptWarning):
+        client.sample(8)
 
 
 def test_one_empty_class_fills_the_batch_and_is_counted(tmp_path):

@@ -26,11 +26,18 @@ from replay.synthetic import small_config as tiny_cfg
 
 REPO = Path(__file__).resolve().parents[1]
 
+
+def episode_trial(cfg, e: int):
+    """The writer's trial of episode ``e``: every third one carries obstacles."""
+    with_obstacle = e % 3 == 0
+    return make_trial(cfg, e, n_objects=1 + with_obstacle, n_obstacles=2 * with_obstacle)
+
+
 WRITER = r"""
 import sys, time
 from replay.shard import ReplayShard
-from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
+from tests.test_replay_crash import episode_trial
 
 path = sys.argv[1]
 capacity, start, count, stall_at = (int(v) for v in sys.argv[2:6])
@@ -48,7 +55,7 @@ shard._write_commit = commit
 print("OPEN", shard._end, flush=True)
 e = start
 while count < 0 or e < start + count:
-    n = shard.insert(make_trial(cfg, e))
+    n = shard.insert(episode_trial(cfg, e))
     print("COMMITTED", n, e, flush=True)
     e += 1
 """
@@ -86,10 +93,13 @@ def check_every_visible_trial(path: Path, cfg) -> list[int]:
     episodes = []
     for t in reader.visible_ids():
         got = reader.get_trial(int(t))
-        want = make_trial(cfg, got.meta.episode_id)
+        want = episode_trial(cfg, got.meta.episode_id)
         assert got.meta == want.meta and got.action == want.action and got.label == want.label
-        assert got.gripper_key == want.gripper_key
-        assert np.abs(got.observation.tsdf - want.observation.tsdf).max() <= err["tsdf"] + 1e-7
+        assert got.gripper_key == want.gripper_key and got.score == want.score
+        for name in ("tsdf", "obstacle"):
+            assert np.abs(getattr(got.observation, name) - getattr(want.observation, name)).max() <= err[name] + 1e-7
+        assert np.abs(got.observation.heightmap - want.observation.heightmap).max() <= err["heightmap_m"] + 1e-7
+        assert np.array_equal(got.observation.valid, want.observation.valid)
         assert np.abs(got.gripper_encoding - want.gripper_encoding[want.action[3]]).max() <= err["tsdf"] + 1e-7
         episodes.append(got.meta.episode_id)
     return episodes
@@ -165,14 +175,14 @@ def test_reader_opens_while_writer_appends(tmp_path):
                     assert "evicted by the writer" in str(e) or "not visible" in str(e)
                     evicted_during_read += 1
                     continue
-                want = make_trial(cfg, got.meta.episode_id)
+                want = episode_trial(cfg, got.meta.episode_id)
                 assert got.trial_id == got.meta.episode_id  # one writer from episode 0: trial n is episode n
                 assert np.abs(got.observation.tsdf - want.observation.tsdf).max() <= err["tsdf"] + 1e-7
                 assert got.action == want.action
                 seen.add(got.trial_id)
             data = reader.read(reader.visible_ids())
             for t, codes in zip(data["trial_id"], data["tsdf"]):
-                want = make_trial(cfg, int(t))
+                want = episode_trial(cfg, int(t))
                 assert np.abs(codes / cfg.replay.tsdf_levels - want.observation.tsdf).max() <= err["tsdf"] + 1e-7
         assert len(seen) > 8, "the reader saw the writer move on"
         assert reader.problems() == []

@@ -125,3 +125,29 @@ def test_a_corrupt_chunk_is_one_warning_line_and_the_error_one_line(replay_root,
     err = capsys.readouterr().err.strip().splitlines()
     assert err and all(line.startswith(("warning: ", "error: ")) for line in err), err
     assert err[-1].startswith("error: ") and not any("shard.py" in line for line in err), err
+
+
+def test_inspect_reads_every_chunk_and_lists_the_unreadable_trial(replay_root, tmp_path, capsys):
+    """inspect finds a damaged volume chunk by itself (it does not wait for a sample to meet it):
+    the trial is counted unreadable, named on a problem line, and left out of the rates."""
+    root, _, _ = replay_root
+    (root / "shard_000" / "tsdf" / "c.2.0.0.0").write_bytes(b"not a chunk")
+    out = tmp_path / "summary.json"
+    assert cli(["inspect", str(root), "--json", str(out)]) == 0
+    captured = capsys.readouterr()
+    s = json.loads(out.read_text())
+    assert s["trials"] == 11 and s["shards"][0]["corrupt"] == 1 and s["shards"][1]["corrupt"] == 0
+    assert any("tsdf: chunk 2 of trial 2 unreadable" in p for p in s["shards"][0]["problems"])
+    assert "1 unreadable" in captured.out and "problem: " in captured.out
+    assert all(line.startswith("warning: ") for line in captured.err.strip().splitlines())
+
+
+def test_policy_versions_are_listed_in_numeric_order(tmp_path):
+    cfg = tiny_cfg(capacity=4)
+    shard = ReplayShard(tmp_path / "s", cfg)
+    for i, version in enumerate((10, 2, 1)):
+        shard.insert(make_trial(cfg, i, policy_version=version))
+    shard.close()
+    out = tmp_path / "summary.json"
+    assert cli(["inspect", str(tmp_path / "s"), "--json", str(out)]) == 0
+    assert list(json.loads(out.read_text())["by_policy_version"]) == ["1", "2", "10"]
