@@ -841,6 +841,11 @@ def object_set(name: str) -> list[ObjectModel]:
     return models
 
 
+def check_object_set(name: str) -> None:
+    """ObjectSetError (one line, with the known names) unless ``name`` is an object set; builds nothing."""
+    _base_members(name, _declarations())
+
+
 def object_model(name: str) -> ObjectModel:
     """The object called ``name`` (e.g. ``ycb/025_mug`` as stored with a trial), built if missing."""
     defs = _declarations()

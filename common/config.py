@@ -327,9 +327,9 @@ class RunConfig:
     """One run: seed, limits, where it lives."""
 
     seed: int = 0
-    """Root seed; actor k draws from numpy SeedSequence([seed, k]), or SeedSequence([seed, k,
-    trials committed so far]) in a resumed run; a restarted Ray actor uses seed + 7919 x its
-    incarnation in place of seed."""
+    """Root seed: the network's initial weights; actor k draws from numpy SeedSequence([seed, k]),
+    or SeedSequence([seed, k, trials committed so far]) in a resumed run; a restarted Ray actor
+    uses seed + 7919 x its incarnation in place of seed."""
     run_dir: str = "runs"
     """Parent folder of run directories (a run gets runs/<timestamp>)."""
     max_trials: int = 0
@@ -410,6 +410,9 @@ _RANGES: dict[str, tuple[float, float]] = {
     "learner.publish_every": (1, 10**9),
     "learner.ema_decay": (0.0, 0.9999),
     "actor.torch_threads": (1, 256),
+    "actor.weights_poll_episodes": (1, 10**6),
+    "grippers.train_openings": (1, 64),
+    "run.seed": (0, 2**63 - 1),
     "grippers.multi_finger_fraction": (0.0, 1.0),
     "sim.lift_height": (0.0, 10.0),
     "sim.multi_objects": (1, 50),
@@ -517,38 +520,40 @@ def _apply(obj: Any, data: dict, source: str, prefix: str = "") -> None:
             setattr(obj, key, coerced)
 
 
-def _cross_checks(cfg: Config, source: str) -> None:
-    """Constraints between fields."""
+def _cross_checks(cfg: Config, source: str | typing.Callable[[str], str]) -> None:
+    """Constraints between fields; ``source`` names where the values came from, or gives it per key."""
+
+    def fail(key: str, problem: str) -> typing.NoReturn:
+        raise ConfigError(f"{source(key) if callable(source) else source}: {key}: {problem}")
+
     for axis, (lo, hi) in zip("xyz", (cfg.scene_grid.x_range, cfg.scene_grid.y_range, cfg.scene_grid.z_range)):
         if hi <= lo:
-            raise ConfigError(f"{source}: scene_grid.{axis}_range: upper bound must exceed lower, got {(lo, hi)}")
+            fail(f"scene_grid.{axis}_range", f"upper bound must exceed lower, got {(lo, hi)}")
         cells = (hi - lo) / cfg.scene_grid.voxel_size
         if abs(cells - round(cells)) > 1e-6:
-            raise ConfigError(
-                f"{source}: scene_grid.voxel_size: {cfg.scene_grid.voxel_size} does not divide {axis}_range {(lo, hi)}"
-            )
+            fail("scene_grid.voxel_size", f"{cfg.scene_grid.voxel_size} does not divide {axis}_range {(lo, hi)}")
     for name, size in (("scene_grid", cfg.scene_grid.voxel_size), ("gripper_grid", cfg.gripper_grid.voxel_size)):
         ratio = cfg.model.feature_cell / size
         if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
-            raise ConfigError(
-                f"{source}: {name}.voxel_size: {size} must divide model.feature_cell {cfg.model.feature_cell}"
-            )
+            fail(f"{name}.voxel_size", f"{size} must divide model.feature_cell {cfg.model.feature_cell}")
     if any(s <= 0 for s in cfg.gripper_grid.shape):
-        raise ConfigError(f"{source}: gripper_grid.shape: every dimension must be positive, got {cfg.gripper_grid.shape}")
+        fail("gripper_grid.shape", f"every dimension must be positive, got {cfg.gripper_grid.shape}")
+    for name in ("scene_widths", "gripper_widths"):
+        widths = getattr(cfg.model, name)
+        if not widths or any(w < 1 for w in widths):
+            fail(f"model.{name}", f"expected one or more positive channel counts, got {list(widths)}")
     lo, hi = cfg.grippers.scale_range
     if not 0 < lo <= hi:
-        raise ConfigError(f"{source}: grippers.scale_range: expected 0 < low <= high, got {(lo, hi)}")
+        fail("grippers.scale_range", f"expected 0 < low <= high, got {(lo, hi)}")
     lo, hi = cfg.grippers.opening_range
     if not 0 <= lo <= hi <= 1:
-        raise ConfigError(f"{source}: grippers.opening_range: expected 0 <= low <= high <= 1, got {(lo, hi)}")
+        fail("grippers.opening_range", f"expected 0 <= low <= high <= 1, got {(lo, hi)}")
     if any(not 0 <= o <= 1 for o in cfg.grippers.eval_openings):
-        raise ConfigError(f"{source}: grippers.eval_openings: every opening must lie in [0, 1]")
+        fail("grippers.eval_openings", "every opening must lie in [0, 1]")
     if cfg.learner.batch_size % 2:
-        raise ConfigError(
-            f"{source}: learner.batch_size: must be even (half successes, half failures), got {cfg.learner.batch_size}"
-        )
+        fail("learner.batch_size", f"must be even (half successes, half failures), got {cfg.learner.batch_size}")
     if cfg.learner.min_replay == 0 and not cfg.replay.seed_from:
-        raise ConfigError(f"{source}: learner.min_replay: 0 needs replay.seed_from (training on an empty replay)")
+        fail("learner.min_replay", "0 needs replay.seed_from (training on an empty replay)")
 
 
 def config_path(name_or_path: str | Path) -> Path:
@@ -577,7 +582,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             where = f" line {mark.line + 1}" if mark is not None else ""
             raise ConfigError(f"{p}:{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
         _apply(cfg, data, str(p))
-        _cross_checks(cfg, str(p))
+    overridden: set[str] = set()
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"--set {item}: expected key=value")
@@ -587,7 +592,10 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         except yaml.YAMLError:
             value = raw
         set_value(cfg, key.strip(), value, "--set")
-    _cross_checks(cfg, "--set" if overrides else str(path or "<defaults>"))
+        overridden.add(key.strip())
+    # once the overrides are in: --set may mend a combination the file got wrong
+    file_source = str(config_path(path)) if path is not None else "<defaults>"
+    _cross_checks(cfg, lambda key: "--set" if key in overridden else file_source)
     return cfg
 
 

@@ -76,7 +76,9 @@ class Learner:
         self.cfg = cfg
         self.replay = replay
         self.device = torch.device(device)
-        self.model = build_model(cfg).to(self.device)
+        with torch.random.fork_rng(devices=[]):  # the initial weights follow ``seed``, not the process
+            torch.manual_seed(seed)
+            self.model = build_model(cfg).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.learner.lr)
         self.generator = torch.Generator().manual_seed(seed)
         self.limiter = SamplesPerInsert.from_config(cfg.learner)

@@ -60,6 +60,37 @@ LEARNER_RESTARTS = 3
 run goes on, this many times at most; the next loss ends the run."""
 LEARNER_RESTART_WAIT_S = 300.0
 """How long the driver waits for a lost learner's new process to take calls."""
+ACTOR_TASK_FAILURES = 3
+"""An actor whose episode chunks raise this many times in a row (an error in the episode code,
+its process alive) ends the run with that error; a lost actor process restarts and continues."""
+
+
+class ActorTaskError(RuntimeError):
+    """An actor's episodes keep failing: the run ends, after its final checkpoint."""
+
+
+class ActorFailures:
+    """Consecutive failed episode chunks per actor (see ACTOR_TASK_FAILURES)."""
+
+    def __init__(self, n_actors: int) -> None:
+        self.count = [0] * n_actors
+
+    def succeeded(self, actor: int) -> None:
+        self.count[actor] = 0
+
+    def failed(self, actor: int, error: Exception) -> str:
+        """Count a chunk that raised ``error`` (a Ray task error: its ``cause`` is the exception
+        raised inside the actor); returns its one-line description, or raises ActorTaskError once
+        the actor has failed ACTOR_TASK_FAILURES times in a row."""
+        cause = getattr(error, "cause", None) or error
+        lines = str(cause).strip().splitlines()
+        line = f"{type(cause).__name__}: {lines[0]}" if lines else type(cause).__name__
+        self.count[actor] += 1
+        if self.count[actor] >= ACTOR_TASK_FAILURES:
+            raise ActorTaskError(
+                f"actor {actor}: {self.count[actor]} episode chunks in a row failed, the last with {line}"
+            )
+        return line
 
 
 def checkpoint_path(run_dir: Path) -> Path:
@@ -112,9 +143,6 @@ class LearnerProcess:
                 "optimizer": c.optimizer, "steps": c.step, "version": c.version, **ls,
             })
             self.resumed_from = c.step
-            # after a crash the replay may hold trials of weights published after the checkpoint:
-            # number the next weights after those, so that a version names one set of weights
-            self.learner.stats.version = max(self.learner.stats.version, marks["policy_version"])
             self.next_episode = [int(e) for e in c.extra.get("replay", {}).get("next_episode", [])]
             self.init_source = portable_init_source(c.extra.get("init_weights"))
         else:
@@ -127,6 +155,10 @@ class LearnerProcess:
                     "step": start.step,
                     "version": start.version,
                 }
+        # after a crash the replay may hold trials of weights published after the last checkpoint,
+        # or before the first one: number the next weights after those, so that a version names
+        # one set of weights
+        self.learner.stats.version = max(self.learner.stats.version, marks["policy_version"])
 
     def inserted(self) -> int:
         """Trials this run's actors ever committed to the replay (see total_inserted)."""
@@ -475,6 +507,7 @@ def run_distributed(
     stats = ray.get(learner.train.remote(0, force_publish=True))
     version, box = stats["weights"]
     published, restarts, learner_restarts = 1, 0, 0
+    failures = ActorFailures(n_actors)
     pending: dict = {}
 
     inserted = stats["inserted"]
@@ -526,9 +559,13 @@ def run_distributed(
                 a = pending.pop(ref)
                 try:
                     progress.add_reports(ray.get(ref))
-                except (RayActorError, RayTaskError) as e:
+                    failures.succeeded(a)
+                except RayActorError as e:
                     restarts += 1
                     print(f"actor {a}: {type(e).__name__}; it restarts and continues", flush=True)
+                except RayTaskError as e:
+                    print(f"actor {a}: episode chunk failed ({failures.failed(a, e)}); it runs the next one",
+                          flush=True)
                 waiting[a] = time.time()
             inserted = total_inserted(replay)
             # The actor side of the rate limiter: an actor starts its next chunk only while the

@@ -12,7 +12,7 @@ Run directory layout::
     RUN/progress.jsonl         one JSON line about every 5 s, and one at exit
     RUN/tb/                    TensorBoard logs
     RUN/summary.json           written at exit; earlier parts' kept (see with_earlier_parts)
-    RUN/history.json           (step, loss) of every learner step; written when a Ray run
+    RUN/history.json           (step, mean loss) of every learner chunk; written when a Ray run
                                (--actors N >= 1) ends, after its final checkpoint; not by --actors 0
 """
 
@@ -25,8 +25,10 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights, network_difference, read_checkpoint
-from common.config import Config, ConfigError, load_config, save_config, set_flags
+from common.config import Config, ConfigError, config_path, load_config, save_config, set_flags
 from common.files import atomic_write_text
 from replay.schema import ReplayError
 
@@ -104,6 +106,8 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not cfg.learner.init_weights.startswith(SHIPPED_PREFIX):
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
         initial_weights(cfg)
+    check_names(cfg, f"{run_dir / 'config.yaml' if args.resume else config_path(args.config or 'default')}"
+                     + (" with --set" if args.set else ""))
     new_dir = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.replay.seed_from and not args.resume:
@@ -131,6 +135,30 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     return cfg, run_dir
 
 
+def check_names(cfg: Config, source: str) -> None:
+    """What the config names beyond single values (the training grippers, the object set, a
+    network its grids and widths can build), checked before RUN/config.yaml is written: a
+    ConfigError naming ``source`` and the key, instead of a failure in every actor."""
+    from actors.grasp_actor import split_grippers
+    from actors.objects import ObjectSetError, check_object_set
+    from common.gripper import GripperSpecError
+    from common.network import NetworkConfigError, build_model
+
+    try:
+        split_grippers(cfg)
+    except (GripperSpecError, ValueError) as e:
+        raise ConfigError(f"{source}: grippers.train_grippers: {e}") from None
+    try:
+        check_object_set(cfg.sim.objects)
+    except ObjectSetError as e:
+        raise ConfigError(f"{source}: sim.objects: {e}") from None
+    try:
+        with torch.random.fork_rng(devices=[]):
+            build_model(cfg)
+    except NetworkConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
+
+
 def cli(argv: list[str]) -> int:
     args = parse_args(argv)
     try:
@@ -142,7 +170,7 @@ def cli(argv: list[str]) -> int:
         where = e.filename or args.run_dir or "the run directory"  # some OSErrors name no file
         print(f"error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
-    from learner.loop import run_distributed, run_local
+    from learner.loop import ActorTaskError, run_distributed, run_local
 
     print(f"run directory: {run_dir}", flush=True)
     stop = {"flag": False}
@@ -161,6 +189,9 @@ def cli(argv: list[str]) -> int:
             summary = run_distributed(
                 cfg, run_dir, stop, n_actors=args.actors, address=args.address, quiet=args.quiet
             )
+    except ActorTaskError as e:
+        print(f"error: {e}; the run stopped after writing its final checkpoint", file=sys.stderr)
+        return 2
     finally:
         signal.signal(signal.SIGINT, previous)
     summary_file = run_dir / "summary.json"

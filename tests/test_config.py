@@ -55,6 +55,11 @@ def test_unknown_key_is_one_line_naming_it():
         ("learner.checkpoint_minutes=-1", "learner.checkpoint_minutes"),
         ("learner.checkpoint_minutes=.nan", "learner.checkpoint_minutes"),
         ("learner.epsilon_decay_trials=-3", "learner.epsilon_decay_trials"),
+        ("run.seed=-1", "run.seed"),
+        ("grippers.train_openings=0", "grippers.train_openings"),
+        ("actor.weights_poll_episodes=0", "actor.weights_poll_episodes"),
+        ("model.scene_widths=[]", "model.scene_widths"),
+        ("model.gripper_widths=[16, 0]", "model.gripper_widths"),
     ],
 )
 def test_learner_values_that_would_fail_later_are_refused_at_load(override, field):
@@ -69,6 +74,18 @@ def test_learner_values_that_would_fail_later_are_refused_at_load(override, fiel
 def test_min_replay_of_zero_is_allowed_with_a_seeded_replay():
     cfg = load_config("default", overrides=["learner.min_replay=0", "replay.seed_from=runs/earlier"])
     assert cfg.learner.min_replay == 0
+
+
+def test_set_mends_a_combination_the_file_got_wrong_and_errors_name_the_values_source(tmp_path):
+    """Constraints between fields are checked once the overrides are in: --set can fix an odd
+    batch in the file, and a remaining error names the file or --set, whichever gave the value."""
+    path = tmp_path / "odd.yaml"
+    path.write_text("learner:\n  batch_size: 7\n")
+    assert load_config(path, overrides=["learner.batch_size=8"]).learner.batch_size == 8
+    with pytest.raises(ConfigError, match=rf"^{path}: learner.batch_size: must be even"):
+        load_config(path, overrides=["learner.lr=0.001"])
+    with pytest.raises(ConfigError, match=r"^--set: learner.batch_size: must be even"):
+        load_config("default", overrides=["learner.batch_size=9"])
 
 
 def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):

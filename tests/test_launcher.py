@@ -210,6 +210,22 @@ def test_bad_config_value_is_one_line(tmp_path, capsys):
     assert rc == 2 and len(err) == 1 and "learner.lr" in err[0]
 
 
+@pytest.mark.parametrize("override, field", [
+    ("grippers.train_grippers=nosuch", "grippers.train_grippers: nosuch: unknown gripper"),
+    ("sim.objects=nosuch", "sim.objects: object set 'nosuch': unknown"),
+    ("model.feature_cell=0.024", "scene_grid.voxel_size: model.feature_cell / voxel_size must be a power of 2"),
+])
+def test_a_name_or_network_the_run_cannot_use_is_one_line_and_starts_nothing(tmp_path, capsys, override, field):
+    """An unknown training gripper or object set, or grids the network's widths cannot encode, is
+    refused before RUN/config.yaml is written (else every actor fails and the corrected command
+    finds the folder taken)."""
+    run_dir = tmp_path / "r"
+    rc = cli(["--actors", "0", "--config", "tiny", "--set", override, "--run-dir", str(run_dir)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "tiny.yaml with --set: " in err[0] and field in err[0], err
+    assert not run_dir.exists()
+
+
 def test_init_weights_of_another_network_is_one_line_and_starts_nothing(tmp_path, capsys):
     run_dir = tmp_path / "r"
     shipped = "model:adagrasp-single-2core-95min-arm"  # default widths; the tiny config's are narrower

@@ -1,6 +1,7 @@
 """Learner: rate limiting, a real training step on synthetic trials, score write-back, save/restore."""
 
 import copy
+import dataclasses
 import errno
 import os
 
@@ -622,3 +623,81 @@ def test_a_restarted_learner_numbers_its_weights_after_those_the_actors_hold(fil
     assert proc.train(0, force_publish=True, after_version=7)["weights"][0] == 8
     assert proc.train(0, force_publish=True, after_version=3)["weights"][0] == 9
     assert proc.train(0)["weights"] is None, "after_version publishes nothing by itself"
+
+
+def test_without_a_checkpoint_a_resumed_learner_numbers_its_weights_after_the_replays(filled_replay, tmp_path):
+    """A run killed before its first checkpoint left trials of published weights in the replay:
+    the learner that starts over numbers its weights after theirs, so a version names one set."""
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    t = synthetic_trial(np.random.default_rng(1), cfg.scene_grid, cfg.gripper_grid, n_objects=1, episode_id=12)
+    t.meta = dataclasses.replace(t.meta, policy_version=16)
+    client.insert(t.validate())
+    client.flush()
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    assert not checkpoint_path(run).is_file()
+    assert proc.train(0, force_publish=True)["weights"][0] == 17
+
+
+def test_checkpoint_keeps_history_and_version_and_publishes_every_n_steps(filled_replay, tmp_path):
+    """learner.publish_every steps between versions (not one more); a resumed learner continues the
+    loss history and numbers its weights after the checkpoint's version, even when the replay's
+    trials carry only older versions."""
+    from learner.loop import LearnerProcess
+
+    cfg, client = filled_replay
+    cfg = dataclasses.replace(cfg, learner=dataclasses.replace(cfg.learner, publish_every=2, samples_per_insert=1e6))
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    assert proc.train(0, force_publish=True)["weights"][0] == 1
+    assert proc.train(1)["weights"] is None
+    assert proc.train(1)["weights"][0] == 2
+    assert proc.train(1)["weights"] is None and proc.train(1)["weights"][0] == 3
+    history = proc.history()
+    assert len(history) == 4 and [step for step, _ in history] == [1, 2, 3, 4]
+    proc.checkpoint(epsilon=0.5, inserted=12)
+    resumed = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    assert resumed.history() == history
+    assert resumed.train(0, force_publish=True)["weights"][0] == 4
+
+
+def test_initial_weights_follow_the_seed_not_the_process(filled_replay):
+    """run.seed fixes the network's first weights; torch's global generator neither decides them
+    nor is moved by them."""
+    cfg, client = filled_replay
+
+    def first_weights(seed, global_seed):
+        torch.manual_seed(global_seed)
+        weights = Learner(cfg, client, seed=seed).model.state_dict()
+        return weights, torch.rand(1)
+
+    a, after_a = first_weights(3, 0)
+    b, after_b = first_weights(3, 1)
+    c, _ = first_weights(4, 0)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert any(v.dtype.is_floating_point and not torch.equal(v, c[k]) for k, v in a.items())
+    torch.manual_seed(0)
+    assert torch.equal(after_a, torch.rand(1)), "building the learner must not draw from the global generator"
+
+
+def test_an_actor_whose_episodes_keep_failing_ends_the_run_with_the_error():
+    """An error raised inside an actor's episodes (its process alive) is not a lost process to
+    restart forever: it is reported with its first line, and the third in a row ends the run."""
+    from ray.exceptions import RayTaskError
+
+    from learner.loop import ACTOR_TASK_FAILURES, ActorFailures, ActorTaskError
+
+    def task_error(message):
+        return RayTaskError("run_episodes", "Traceback ...", ValueError(message))
+
+    failures = ActorFailures(2)
+    assert failures.failed(0, task_error("openings must be a non-empty tuple\n  detail")) == (
+        "ValueError: openings must be a non-empty tuple")
+    failures.succeeded(0)  # a chunk that ran clears the count
+    for _ in range(ACTOR_TASK_FAILURES - 1):
+        failures.failed(0, task_error("bad"))
+        failures.failed(1, task_error("other"))
+    with pytest.raises(ActorTaskError, match=r"^actor 1: 3 episode chunks in a row failed, the last with ValueError: x$"):
+        failures.failed(1, task_error("x"))
