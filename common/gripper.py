@@ -359,6 +359,7 @@ def load_spec(path: str | Path) -> GripperSpec:
         raise GripperSpecError(f"{path}: {field_name}: {source.name}: {e}") from None
     try:
         table = joint_table(raw_robot)
+        mimics = read_mimics(raw_robot)
     except FormatError as e:
         raise GripperSpecError(f"{path}: source: {source.name}: {e}") from None
     movable = {n for n, j in table.items() if j["type"] in MOVABLE_TYPES}
@@ -388,7 +389,7 @@ def load_spec(path: str | Path) -> GripperSpec:
     drive_names = {d.name for d in drives}
 
     couplings: list[Coupling] = []
-    for jn, driver, mult, off in read_mimics(raw_robot):
+    for jn, driver, mult, off in mimics:
         if jn in drive_names:
             continue
         couplings.append(Coupling(jn, driver, mult, off, "mimic", table[jn]["type"] == "prismatic", True))
@@ -616,7 +617,10 @@ def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = F
                     mesh.set("filename", str(_hull_file(Path(mesh.get("filename")), sc, spec.urdf.parent / "hulls")))
                     mesh.set("scale", "1 1 1")
                 link.append(v)
-    robot = scale_robot(robot, scale)
+    try:
+        robot = scale_robot(robot, scale)
+    except FormatError as e:
+        raise GripperSpecError(f"{spec.spec_path}: source: {spec.urdf.name}: {e}") from None
     ET.indent(robot)
     atomic_write_text(out, ET.tostring(robot, encoding="unicode"))
     return out

@@ -87,6 +87,25 @@ def _floats(text: str | None, n: int, what: str, default=None) -> np.ndarray:
     return vals
 
 
+def _number(text: str | None, what: str, default: float | None = None) -> float:
+    """One number of the file (``default`` where absent), or FormatError naming ``what``."""
+    if text is None:
+        if default is None:
+            raise FormatError(f"{what}: missing")
+        return float(default)
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        raise FormatError(f"{what}: expected a number, got {text!r}") from None
+
+
+def _text(el: ET.Element | None, what: str) -> str:
+    """The stripped text of element ``el``, or FormatError naming ``what`` when it is absent or empty."""
+    if el is None or el.text is None or not el.text.strip():
+        raise FormatError(f"{what}: missing")
+    return el.text.strip()
+
+
 def _fmt(v) -> str:
     return " ".join(f"{float(x):.9g}" for x in np.ravel(v))
 
@@ -164,8 +183,8 @@ def joint_table(robot: ET.Element) -> dict[str, dict]:
     out = {}
     for name, j in joints.items():
         lim = j.find("limit")
-        lo = float(lim.get("lower")) if lim is not None and lim.get("lower") is not None else None
-        hi = float(lim.get("upper")) if lim is not None and lim.get("upper") is not None else None
+        lo, hi = (None if lim is None or lim.get(key) is None else _number(lim.get(key), f"joint {name}: limit {key}")
+                  for key in ("lower", "upper"))
         out[name] = {
             "type": j.get("type"),
             "parent": j.find("parent").get("link"),
@@ -182,7 +201,9 @@ def read_mimics(robot: ET.Element) -> list[tuple[str, str, float, float]]:
     for j in robot.findall("joint"):
         m = j.find("mimic")
         if m is not None:
-            out.append((j.get("name"), m.get("joint"), float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0))))
+            name = j.get("name")
+            out.append((name, m.get("joint"), _number(m.get("multiplier"), f"joint {name}: mimic multiplier", 1.0),
+                        _number(m.get("offset"), f"joint {name}: mimic offset", 0.0)))
     return out
 
 
@@ -306,9 +327,10 @@ def _collision_mesh(col: ET.Element, what: str):
     if shape.tag == "box":
         tm = trimesh.creation.box(extents=_floats(shape.get("size"), 3, f"{what} box size"))
     elif shape.tag == "sphere":
-        tm = trimesh.creation.icosphere(2, float(shape.get("radius", 0)))
+        tm = trimesh.creation.icosphere(2, _number(shape.get("radius"), f"{what} sphere radius", 0))
     elif shape.tag == "cylinder":
-        tm = trimesh.creation.cylinder(float(shape.get("radius", 0)), float(shape.get("length", 0)), sections=24)
+        tm = trimesh.creation.cylinder(_number(shape.get("radius"), f"{what} cylinder radius", 0),
+                                       _number(shape.get("length"), f"{what} cylinder length", 0), sections=24)
     elif shape.tag == "mesh":
         try:
             tm = trimesh.load(shape.get("filename"), force="mesh")
@@ -337,7 +359,7 @@ def inertia_from_collision(robot: ET.Element) -> list[str]:
         name = link.get("name")
         inertial = link.find("inertial")
         mass_el = None if inertial is None else inertial.find("mass")
-        mass = 0.0 if mass_el is None else float(mass_el.get("value", 0))
+        mass = 0.0 if mass_el is None else _number(mass_el.get("value"), f"link {name}: inertial mass", 0)
         meshes = [m for c in link.findall("collision") if (m := _collision_mesh(c, f"link {name} collision")) is not None]
         if mass <= 0 or not meshes:
             continue
@@ -373,23 +395,24 @@ def scale_robot(robot: ET.Element, s: float) -> ET.Element:
         for el in out.iter(tag):
             for key in ("radius", "length"):
                 if el.get(key) is not None:
-                    el.set(key, f"{float(el.get(key)) * s:.9g}")
+                    el.set(key, f"{_number(el.get(key), f'{tag} {key}') * s:.9g}")
     for mesh in out.iter("mesh"):
         mesh.set("scale", _fmt(_floats(mesh.get("scale"), 3, "mesh scale", (1, 1, 1)) * s))
     for inertia in out.iter("inertia"):
         for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"):
             if inertia.get(key) is not None:
-                inertia.set(key, f"{float(inertia.get(key)) * s * s:.9g}")
+                inertia.set(key, f"{_number(inertia.get(key), f'inertia {key}') * s * s:.9g}")
     for j in out.findall("joint"):
         if j.get("type") == "prismatic":
             lim = j.find("limit")
+            where = f"joint {j.get('name')}"
             if lim is not None:
                 for key in ("lower", "upper", "velocity"):
                     if lim.get(key) is not None:
-                        lim.set(key, f"{float(lim.get(key)) * s:.9g}")
+                        lim.set(key, f"{_number(lim.get(key), f'{where}: limit {key}') * s:.9g}")
             m = j.find("mimic")
             if m is not None and m.get("offset") is not None:
-                m.set("offset", f"{float(m.get('offset')) * s:.9g}")
+                m.set("offset", f"{_number(m.get('offset'), f'{where}: mimic offset') * s:.9g}")
     return out
 
 
@@ -457,7 +480,7 @@ def sdf_to_urdf(root: ET.Element, path: Path) -> ET.Element:
                 oe.append(_sdf_geometry(geom, f"link {name} {tag}"))
     for joint in model.findall("joint"):
         name = joint.get("name")
-        parent, child = joint.find("parent").text.strip(), joint.find("child").text.strip()
+        parent, child = _text(joint.find("parent"), f"joint {name}: parent"), _text(joint.find("child"), f"joint {name}: child")
         if parent not in poses or child not in poses:
             raise FormatError(f"joint {name}: parent {parent!r} or child {child!r} is not a link of the model")
         if not np.allclose(_pose(joint, f"joint {name}"), np.eye(4)):
@@ -478,7 +501,10 @@ def sdf_to_urdf(root: ET.Element, path: Path) -> ET.Element:
             ET.SubElement(oj, "axis", {"xyz": _fmt(xyz)})
             lim = axis.find("limit")
             if lim is not None:
-                attrs = {k: lim.find(k).text.strip() for k in ("lower", "upper", "effort", "velocity") if lim.find(k) is not None}
+                attrs = {k: _text(lim.find(k), f"joint {name}: limit {k}")
+                         for k in ("lower", "upper", "effort", "velocity") if lim.find(k) is not None}
+                for k, v in attrs.items():
+                    _number(v, f"joint {name}: limit {k}")
                 ET.SubElement(oj, "limit", attrs)
     return robot
 
@@ -560,10 +586,11 @@ def mjcf_to_urdf(root: ET.Element, path: Path) -> ET.Element:
             a = defaults.attrs(g, childclass)
             what = f"geom {g.get('name', '')} of body {body.get('name')}"
             gtype = a.get("type", "sphere")
-            collides = int(a.get("contype", "1")) != 0 or int(a.get("conaffinity", "1")) != 0
+            collides = _number(a.get("contype"), f"{what} contype", 1) != 0 or (
+                _number(a.get("conaffinity"), f"{what} conaffinity", 1) != 0)
             tag = "collision" if collides else "visual"
             T = T_link_body @ _mj_frame(a, what, angle_deg)
-            size = [float(v) for v in a.get("size", "0").split()]
+            size = [_number(v, f"{what} size") for v in a.get("size", "0").split()]
             parts: list[tuple[np.ndarray, ET.Element]] = []
             if "fromto" in a and gtype in ("capsule", "cylinder"):
                 ft = _floats(a["fromto"], 6, f"{what} fromto")
@@ -655,7 +682,7 @@ def mjcf_to_urdf(root: ET.Element, path: Path) -> ET.Element:
             Tp = np.eye(4)
             Tp[:3, 3] = Ti[:3, 3]
             set_origin(oi, Tp)
-            ET.SubElement(oi, "mass", {"value": f"{max(float(a.get('mass', 0.01)), 1e-3):.9g}"})
+            ET.SubElement(oi, "mass", {"value": f"{max(_number(a.get('mass'), f'body {name} mass', 0.01), 1e-3):.9g}"})
             diag = np.maximum(np.diag(inertia), 1e-8)
             ET.SubElement(oi, "inertia", {"ixx": f"{diag[0]:.9g}", "iyy": f"{diag[1]:.9g}", "izz": f"{diag[2]:.9g}",
                                           "ixy": f"{inertia[0, 1]:.9g}", "ixz": f"{inertia[0, 2]:.9g}", "iyz": f"{inertia[1, 2]:.9g}"})

@@ -57,6 +57,26 @@ def test_parallel_jaw_lifts_centred_cube_10_seeds():
         assert abs(o.stop_z - o.grasp_position[2]) < 0.002 or o.stopped_at_contact
 
 
+@pytest.mark.parametrize("bar_yaw, good_k, bad_k", [(0.0, 0, 4), (np.pi / 4, 2, 6)])
+def test_the_executed_yaw_turns_with_k_the_way_the_network_assumes(bar_yaw, good_k, bad_k):
+    """A 2.5 x 10 cm bar (long side along y, then turned by ``bar_yaw``) is lifted when the jaws
+    close across it and slips when they close along it: rotation k turns the gripper by
+    +2 pi k / R about z, so a sign error in the executed yaw swaps k = 2 and k = 6 on the turned
+    bar (a cube looks the same either way)."""
+    cfg = load_config("default")
+    outcomes = {}
+    for k in (good_k, bad_k):
+        with Simulation(cfg, seed=0) as sim:
+            gripper = sim.load_gripper(get_gripper(GRIPPER), 1.0)
+            i, j = world_to_cell(sim.grid, 0.0, 0.0)
+            xy = cell_to_world(sim.grid, i, j)
+            sim.add_box([0.025, 0.10, 0.04], [xy[0], xy[1], 0.02], yaw=bar_yaw)
+            sim.settle()
+            obs = sim.observe()
+            outcomes[k] = execute_grasp(sim, gripper, (int(i), int(j), k, 0), (1.0,), obs.heightmap)
+    assert outcomes[good_k].success and not outcomes[bad_k].success, outcomes
+
+
 def test_grasp_pose_follows_action_contract(default_cfg):
     with Simulation(default_cfg, seed=0) as sim:
         hm = np.zeros(sim.grid.shape[:2], dtype=np.float32)

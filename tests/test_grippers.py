@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -387,6 +388,45 @@ def test_broken_urdf(tmp_path):
     with pytest.raises(GripperSpecError) as e:
         load_spec(f)
     _one_line(e, str(f), "source", "not valid XML")
+
+
+_SDF = ("<sdf version='1.6'><model name='m'><link name='palm'><collision name='c'><geometry><box><size>0.1 0.1 0.1"
+        "</size></box></geometry></collision></link><link name='f'><collision name='c'><geometry><box><size>0.01 0.01"
+        " 0.05</size></box></geometry></collision></link><joint name='j' type='prismatic'><parent>palm</parent>"
+        "<child>f</child><axis><xyz>1 0 0</xyz><limit><lower>0</lower><upper>0.05</upper></limit></axis></joint>"
+        "</model></sdf>")
+_MJCF = ("<mujoco model='m'><worldbody><body name='palm'><geom type='box' size='0.05 0.05 0.05'/><body name='f' "
+         "pos='0 0 -0.05'><joint name='j' type='slide' axis='1 0 0' range='0 0.05'/><geom type='box' "
+         "size='0.005 0.005 0.02'/></body></body></worldbody></mujoco>")
+
+
+@pytest.mark.parametrize("suffix, text, field", [
+    ("urdf", "parallel_jaw", "joint finger_left_joint: limit lower: expected a number, got 'abc'"),
+    ("urdf", "parallel_jaw", "joint finger_right_joint: mimic multiplier: expected a number, got 'one'"),
+    ("sdf", _SDF.replace("<parent>palm</parent>", ""), "joint j: parent: missing"),
+    ("sdf", _SDF.replace("<lower>0</lower>", "<lower>zero</lower>"), "joint j: limit lower: expected a number"),
+    ("xml", _MJCF.replace("0.05 0.05 0.05", "0.05 0.05 abc"), "body palm size: expected a number, got 'abc'"),
+    ("xml", _MJCF.replace("type='box' size='0.005", "type='box' contype='no' size='0.005"), "body f contype"),
+])
+def test_a_malformed_number_or_element_in_the_source_is_one_line(tmp_path, suffix, text, field):
+    """A value of the robot file that is not a number, or a missing SDF joint element, names the
+    spec, the source file and the element, in one line (not a ValueError from deep inside)."""
+    data = _base(tmp_path)
+    if text == "parallel_jaw":
+        source = Path(data["source"]).read_text()
+        bad = re.sub(r'lower="[^"]*"', 'lower="abc"', source, count=1) if "limit" in field else (
+            re.sub(r'multiplier="[^"]*"', 'multiplier="one"', source, count=1))
+        assert bad != source
+    else:
+        bad = text
+        data.update(cut_link="palm", drive_joints=[{"name": "j", "open": 0.03, "closed": 0.0}], couplings=[])
+    src = tmp_path / f"broken.{suffix}"
+    src.write_text(bad)
+    data["source"] = str(src)
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), f"source: broken.{suffix}: ", field)
 
 
 def test_missing_mesh_and_missing_source(tmp_path):
