@@ -111,8 +111,8 @@ def tinyrenderer_projection(intrinsics: Intrinsics, near: float, far: float) -> 
     )
 
 
-def _check_config(cfg: Config) -> None:
-    """Constraints between simulation fields that a single range cannot express."""
+def check_sim_config(cfg: Config) -> None:
+    """Constraints between simulation fields that a single range cannot express (ConfigError)."""
     sim, grid = cfg.sim, cfg.scene_grid
     half_x = (grid.x_range[1] - grid.x_range[0]) / 2
     half_y = (grid.y_range[1] - grid.y_range[0]) / 2
@@ -135,7 +135,7 @@ class Simulation:
 
     def __init__(self, cfg: Config, seed: int = 0, gui: bool = False) -> None:
         """``cfg``: resolved config (scene grid, sim); ``seed``: seed of the generator; ``gui``: open a window."""
-        _check_config(cfg)
+        check_sim_config(cfg)
         self.cfg = cfg
         self.grid = cfg.scene_grid
         self.seed = int(seed)

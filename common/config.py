@@ -520,22 +520,26 @@ def _apply(obj: Any, data: dict, source: str, prefix: str = "") -> None:
             setattr(obj, key, coerced)
 
 
-def _cross_checks(cfg: Config, source: str | typing.Callable[[str], str]) -> None:
-    """Constraints between fields; ``source`` names where the values came from, or gives it per key."""
+def _cross_checks(cfg: Config, source: str | typing.Callable[[tuple[str, ...]], str]) -> None:
+    """Constraints between fields; ``source`` names where the values came from, or gives it for the
+    keys a constraint involves."""
 
-    def fail(key: str, problem: str) -> typing.NoReturn:
-        raise ConfigError(f"{source(key) if callable(source) else source}: {key}: {problem}")
+    def fail(key: str, problem: str, *others: str) -> typing.NoReturn:
+        where = source((key,) + others) if callable(source) else source
+        raise ConfigError(f"{where}: {key}: {problem}")
 
     for axis, (lo, hi) in zip("xyz", (cfg.scene_grid.x_range, cfg.scene_grid.y_range, cfg.scene_grid.z_range)):
         if hi <= lo:
             fail(f"scene_grid.{axis}_range", f"upper bound must exceed lower, got {(lo, hi)}")
         cells = (hi - lo) / cfg.scene_grid.voxel_size
         if abs(cells - round(cells)) > 1e-6:
-            fail("scene_grid.voxel_size", f"{cfg.scene_grid.voxel_size} does not divide {axis}_range {(lo, hi)}")
+            fail("scene_grid.voxel_size", f"{cfg.scene_grid.voxel_size} does not divide {axis}_range {(lo, hi)}",
+                 f"scene_grid.{axis}_range")
     for name, size in (("scene_grid", cfg.scene_grid.voxel_size), ("gripper_grid", cfg.gripper_grid.voxel_size)):
         ratio = cfg.model.feature_cell / size
         if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
-            fail(f"{name}.voxel_size", f"{size} must divide model.feature_cell {cfg.model.feature_cell}")
+            fail(f"{name}.voxel_size", f"{size} must divide model.feature_cell {cfg.model.feature_cell}",
+                 "model.feature_cell")
     if any(s <= 0 for s in cfg.gripper_grid.shape):
         fail("gripper_grid.shape", f"every dimension must be positive, got {cfg.gripper_grid.shape}")
     for name in ("scene_widths", "gripper_widths"):
@@ -553,7 +557,7 @@ def _cross_checks(cfg: Config, source: str | typing.Callable[[str], str]) -> Non
     if cfg.learner.batch_size % 2:
         fail("learner.batch_size", f"must be even (half successes, half failures), got {cfg.learner.batch_size}")
     if cfg.learner.min_replay == 0 and not cfg.replay.seed_from:
-        fail("learner.min_replay", "0 needs replay.seed_from (training on an empty replay)")
+        fail("learner.min_replay", "0 needs replay.seed_from (training on an empty replay)", "replay.seed_from")
 
 
 def config_path(name_or_path: str | Path) -> Path:
@@ -593,9 +597,15 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             value = raw
         set_value(cfg, key.strip(), value, "--set")
         overridden.add(key.strip())
-    # once the overrides are in: --set may mend a combination the file got wrong
+    # once the overrides are in: --set may mend a combination the file got wrong; an error names
+    # --set when it set a key the constraint involves (or its section), else the file
     file_source = str(config_path(path)) if path is not None else "<defaults>"
-    _cross_checks(cfg, lambda key: "--set" if key in overridden else file_source)
+
+    def source(keys: tuple[str, ...]) -> str:
+        hit = any(k == o or k.startswith(o + ".") for k in keys for o in overridden)
+        return "--set" if hit else file_source
+
+    _cross_checks(cfg, source)
     return cfg
 
 

@@ -106,6 +106,13 @@ def _text(el: ET.Element | None, what: str) -> str:
     return el.text.strip()
 
 
+def _number_text(el: ET.Element | None, what: str) -> str:
+    """The text of element ``el``, checked to be a number (kept as written)."""
+    text = _text(el, what)
+    _number(text, what)
+    return text
+
+
 def _fmt(v) -> str:
     return " ".join(f"{float(x):.9g}" for x in np.ravel(v))
 
@@ -157,12 +164,15 @@ def load_robot_xml(path: Path) -> ET.Element:
 
 
 def links_and_joints(robot: ET.Element) -> tuple[dict[str, ET.Element], dict[str, ET.Element]]:
-    """Name -> element maps of the links and joints of a URDF tree."""
+    """Name -> element maps of the links and joints of a URDF tree (link masses checked)."""
     links = {}
     for link in robot.findall("link"):
         name = link.get("name")
         if not name:
             raise FormatError("a <link> has no name")
+        mass = link.find("inertial/mass")
+        if mass is not None:
+            _number(mass.get("value"), f"link {name}: inertial mass")
         links[name] = link
     joints = {}
     for joint in robot.findall("joint"):
@@ -434,16 +444,18 @@ def _pose(elem: ET.Element | None, what: str) -> np.ndarray:
 def _sdf_geometry(geom: ET.Element, what: str) -> ET.Element:
     out = ET.Element("geometry")
     if geom.find("box") is not None:
-        ET.SubElement(out, "box", {"size": _fmt(_floats(geom.find("box/size").text, 3, f"{what} box size"))})
+        size = _floats(_text(geom.find("box/size"), f"{what} box size"), 3, f"{what} box size")
+        ET.SubElement(out, "box", {"size": _fmt(size)})
     elif geom.find("cylinder") is not None:
         c = geom.find("cylinder")
-        ET.SubElement(out, "cylinder", {"radius": c.find("radius").text.strip(), "length": c.find("length").text.strip()})
+        ET.SubElement(out, "cylinder", {"radius": _number_text(c.find("radius"), f"{what} cylinder radius"),
+                                        "length": _number_text(c.find("length"), f"{what} cylinder length")})
     elif geom.find("sphere") is not None:
-        ET.SubElement(out, "sphere", {"radius": geom.find("sphere/radius").text.strip()})
+        ET.SubElement(out, "sphere", {"radius": _number_text(geom.find("sphere/radius"), f"{what} sphere radius")})
     elif geom.find("mesh") is not None:
         m = geom.find("mesh")
         scale = _floats(m.find("scale").text if m.find("scale") is not None else None, 3, f"{what} scale", (1, 1, 1))
-        ET.SubElement(out, "mesh", {"filename": m.find("uri").text.strip(), "scale": _fmt(scale)})
+        ET.SubElement(out, "mesh", {"filename": _text(m.find("uri"), f"{what} mesh uri"), "scale": _fmt(scale)})
     else:
         raise FormatError(f"{what}: unsupported SDF geometry {[c.tag for c in geom]}")
     return out
@@ -465,10 +477,10 @@ def sdf_to_urdf(root: ET.Element, path: Path) -> ET.Element:
             oi = ET.SubElement(out, "inertial")
             set_origin(oi, _pose(inertial, f"link {name} inertial"))
             mass = inertial.find("mass")
-            ET.SubElement(oi, "mass", {"value": mass.text.strip() if mass is not None else "0.1"})
+            ET.SubElement(oi, "mass", {"value": _number_text(mass, f"link {name}: inertial mass") if mass is not None else "0.1"})
             ine = inertial.find("inertia")
-            vals = {k: (ine.find(k).text.strip() if ine is not None and ine.find(k) is not None else "0")
-                    for k in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}
+            vals = {k: (_number_text(ine.find(k), f"link {name}: inertia {k}") if ine is not None and ine.find(k) is not None
+                        else "0") for k in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}
             ET.SubElement(oi, "inertia", vals)
         for tag in ("visual", "collision"):
             for el in link.findall(tag):

@@ -60,13 +60,17 @@ LEARNER_RESTARTS = 3
 run goes on, this many times at most; the next loss ends the run."""
 LEARNER_RESTART_WAIT_S = 300.0
 """How long the driver waits for a lost learner's new process to take calls."""
-ACTOR_TASK_FAILURES = 3
-"""An actor whose episode chunks raise this many times in a row (an error in the episode code,
-its process alive) ends the run with that error; a lost actor process restarts and continues."""
 
 
 class ActorTaskError(RuntimeError):
-    """An actor's episodes keep failing: the run ends, after its final checkpoint."""
+    """An actor's episodes keep failing: the run ends, after its final checkpoint (the summary's
+    ``error``)."""
+
+
+ACTOR_TASK_FAILURES = 3
+"""An actor whose episode chunks raise this many times in a row (an error in the episode code,
+its process alive) ends the run with that error; a lost process (the actor's own, a shard's, the
+owner of the weights it fetches) is Ray's to restart, and the run continues."""
 
 
 class ActorFailures:
@@ -78,19 +82,25 @@ class ActorFailures:
     def succeeded(self, actor: int) -> None:
         self.count[actor] = 0
 
-    def failed(self, actor: int, error: Exception) -> str:
-        """Count a chunk that raised ``error`` (a Ray task error: its ``cause`` is the exception
-        raised inside the actor); returns its one-line description, or raises ActorTaskError once
-        the actor has failed ACTOR_TASK_FAILURES times in a row."""
+    def failed(self, actor: int, error: Exception) -> tuple[str, bool]:
+        """A chunk that raised ``error`` (a Ray task error: its ``cause`` is the exception raised
+        inside the actor): its one-line description, and whether it counts as an error of the
+        episode code. A cause that is itself a Ray error (a lost shard, a lost weights owner) is
+        transient and resets nothing; ActorTaskError once the actor has raised
+        ACTOR_TASK_FAILURES errors of its own in a row."""
+        from ray.exceptions import RayError
+
         cause = getattr(error, "cause", None) or error
         lines = str(cause).strip().splitlines()
         line = f"{type(cause).__name__}: {lines[0]}" if lines else type(cause).__name__
+        if isinstance(cause, RayError):
+            return line, False
         self.count[actor] += 1
         if self.count[actor] >= ACTOR_TASK_FAILURES:
             raise ActorTaskError(
                 f"actor {actor}: {self.count[actor]} episode chunks in a row failed, the last with {line}"
             )
-        return line
+        return line, True
 
 
 def checkpoint_path(run_dir: Path) -> Path:
@@ -541,8 +551,9 @@ def run_distributed(
         learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
 
     t0 = last_ckpt = time.time()
+    error = None  # an actor's episodes kept failing: the run ends with this line
     try:
-        while not _done(cfg, inserted, t0, stop):
+        while error is None and not _done(cfg, inserted, t0, stop):
             ready, _ = ray.wait(list(pending) + [learner_future], num_returns=1, timeout=1.0)
             for ref in ready:
                 if ref is learner_future:
@@ -564,9 +575,16 @@ def run_distributed(
                     restarts += 1
                     print(f"actor {a}: {type(e).__name__}; it restarts and continues", flush=True)
                 except RayTaskError as e:
-                    print(f"actor {a}: episode chunk failed ({failures.failed(a, e)}); it runs the next one",
-                          flush=True)
+                    try:
+                        line, own = failures.failed(a, e)
+                    except ActorTaskError as end:
+                        error = str(end)
+                        break
+                    restarts += not own
+                    print(f"actor {a}: episode chunk failed ({line}); it runs the next one", flush=True)
                 waiting[a] = time.time()
+            if error is not None:
+                break
             inserted = total_inserted(replay)
             # The actor side of the rate limiter: an actor starts its next chunk only while the
             # inserts are less than insert_lead trials ahead of the learner's samples.
@@ -619,5 +637,6 @@ def run_distributed(
         run_dir, inserted, stats, progress,
         {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts,
          "learner_restarts": learner_restarts, "checkpoint": ckpt,
-         "actor_wait_s": round(wait_s + sum(time.time() - w for w in waiting.values()), 1)},  # summed over actors
+         "actor_wait_s": round(wait_s + sum(time.time() - w for w in waiting.values()), 1),  # summed over actors
+         **({"error": error} if error is not None else {})},
     )

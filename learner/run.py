@@ -63,7 +63,9 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not (run_dir / "config.yaml").read_text().strip():
             raise ConfigError(f"{run_dir / 'config.yaml'}: empty; a run's config.yaml holds the config it started with")
         cfg = load_config(run_dir / "config.yaml", overrides=args.set)
-        recorded = load_config(run_dir / "config.yaml").replay.seed_from
+        # the file's seed_from, with the other overrides (which may mend the file's other keys)
+        others = [o for o in args.set if not o.split("=", 1)[0].strip().startswith("replay.seed_from")]
+        recorded = load_config(run_dir / "config.yaml", overrides=others).replay.seed_from
         if cfg.replay.seed_from != recorded:
             origin = f"seeded from {recorded}" if recorded else "started empty"
             raise ConfigError(
@@ -137,13 +139,19 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
 
 def check_names(cfg: Config, source: str) -> None:
     """What the config names beyond single values (the training grippers, the object set, a
-    network its grids and widths can build), checked before RUN/config.yaml is written: a
-    ConfigError naming ``source`` and the key, instead of a failure in every actor."""
+    network its grids and widths can build) and the simulation's constraints between fields,
+    checked before RUN/config.yaml is written: a ConfigError naming ``source`` and the key,
+    instead of a failure in every actor."""
     from actors.grasp_actor import split_grippers
     from actors.objects import ObjectSetError, check_object_set
+    from actors.simulation import check_sim_config
     from common.gripper import GripperSpecError
     from common.network import NetworkConfigError, build_model
 
+    try:
+        check_sim_config(cfg)
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
     try:
         split_grippers(cfg)
     except (GripperSpecError, ValueError) as e:
@@ -170,7 +178,7 @@ def cli(argv: list[str]) -> int:
         where = e.filename or args.run_dir or "the run directory"  # some OSErrors name no file
         print(f"error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
-    from learner.loop import ActorTaskError, run_distributed, run_local
+    from learner.loop import run_distributed, run_local
 
     print(f"run directory: {run_dir}", flush=True)
     stop = {"flag": False}
@@ -189,15 +197,15 @@ def cli(argv: list[str]) -> int:
             summary = run_distributed(
                 cfg, run_dir, stop, n_actors=args.actors, address=args.address, quiet=args.quiet
             )
-    except ActorTaskError as e:
-        print(f"error: {e}; the run stopped after writing its final checkpoint", file=sys.stderr)
-        return 2
     finally:
         signal.signal(signal.SIGINT, previous)
     summary_file = run_dir / "summary.json"
     summary = with_earlier_parts(summary_file, summary)
     atomic_write_text(summary_file, json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
+    if "error" in summary:  # actors whose episodes kept failing ended the run (final checkpoint written)
+        print(f"error: {summary['error']}; the run stopped after writing its final checkpoint", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -674,6 +674,9 @@ class ReplayShard:
         self._refcount = np.zeros(self.table_rows, np.int64)
         self._slot_row = np.full(c, -1, np.int64)
         self._row_of: dict[tuple[str, int], int] = {}
+        self._rows_read: set[int] = set()
+        """Rows of _row_of whose chunk this writer has written or read back: a row found in the
+        table at open is read once before an insert reuses it (a damaged one is not reused)."""
         self._tokens: dict[tuple[int, int], int] = {}
         for t, s in zip(ids.tolist(), slots.tolist()):
             if self._lost[s]:
@@ -753,6 +756,15 @@ class ReplayShard:
         slot = n % self.slots  # its previous trial, n - capacity - 1, is no longer visible
         key = (rec.gripper_key, int(rec.action[3]))
         row = self._row_of.get(key)
+        if row is not None and row not in self._rows_read:
+            res = self._io["gripper_table"].read(row)
+            if isinstance(res, str):
+                self._problem(f"{self.path}/gripper_table: chunk {row} unreadable ({res}); "
+                              f"its trials are lost, new ones get a fresh row")
+                del self._row_of[key]
+                row = None
+            else:
+                self._rows_read.add(row)
         new_row = row is None
         if new_row:
             row = heapq.heappop(self._free_rows)
@@ -797,6 +809,7 @@ class ReplayShard:
             self._release_slot(e % self.slots, e)
         if new_row:
             self._row_of[key] = row
+            self._rows_read.add(row)
         self._tokens[rec.token] = n
         self._lost[slot] = False
         self._inserts += 1
@@ -883,12 +896,21 @@ class ReplayShard:
         ids = np.asarray(trial_ids, np.int64)
         return self._col[name][ids % self.slots]
 
+    def _evicted_meanwhile(self, trial: int) -> bool:
+        """A reader following a live writer: whether ``trial`` was evicted since the commit was
+        read (its chunks may then be gone or rewritten: not damage). Always False for the writer."""
+        if not self.read_only:
+            return False
+        self._first, self._end = self._read_commit()
+        return trial < self._first
+
     def _mark_corrupt(self, name: str, trial: int, index: int, err: str) -> str:
         """Remember an unreadable trial (warned once); returns the one-line description. An
         unreadable gripper-table row is not reused: the next trial of its gripper writes a new row."""
         if name == "gripper_table":
             for key in [k for k, r in self._row_of.items() if r == index]:
                 del self._row_of[key]
+            self._rows_read.discard(index)
         line = f"{self.path}/{name}: chunk {index} of trial {trial} unreadable ({err})"
         if trial not in self._corrupt:
             self._corrupt[trial] = line
@@ -925,7 +947,8 @@ class ReplayShard:
             for name, index, dest, out in reads:
                 res = self._io[name].read(index, out=out)
                 if isinstance(res, str):
-                    self._mark_corrupt(name, t, index, res)
+                    if not self._evicted_meanwhile(t):
+                        self._mark_corrupt(name, t, index, res)
                     keep[b] = False
                     break
                 dest[b] = res
@@ -964,6 +987,8 @@ class ReplayShard:
         for nm, i in zip(names, (slot, slot, row, slot)):
             res = self._io[nm].read(i)
             if isinstance(res, str):
+                if self._evicted_meanwhile(t):
+                    raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
                 raise ReplayCorruptError(self._mark_corrupt(nm, t, i, res))
             results.append(res)
         if self.read_only:
@@ -988,17 +1013,33 @@ class ReplayShard:
         )
 
     def verify(self) -> int:
-        """Read every visible trial's volume chunks (checksum, decompression); an unreadable one is
-        marked corrupt like a failed sample read (warned once, counted in stats, no longer visible).
-        Returns how many were found."""
+        """Read every visible trial's volume chunks (checksum, decompression; a gripper-table row
+        once for all its trials); an unreadable one is marked corrupt like a failed sample read
+        (warned once, counted in stats, no longer visible). Returns how many were found."""
         found = 0
+        rows: dict[int, str | None] = {}  # row -> error, None when readable
         for t in self.visible_ids().tolist():
-            try:
-                self.encoded(t, (-1, t))
-            except ReplayCorruptError:
+            slot = t % self.slots
+            row = int(self._col["gripper_row"][slot])
+            reads = [("tsdf", slot), ("surface", slot)]
+            if int(self._col["obstacle_voxels"][slot]) > 0:
+                reads.append(("obstacle", slot))
+            error = None
+            for name, index in reads:
+                res = self._io[name].read(index)
+                if isinstance(res, str):
+                    error = name, index, res
+                    break
+            if error is None:
+                if row not in rows:
+                    res = self._io["gripper_table"].read(row)
+                    rows[row] = res if isinstance(res, str) else None
+                if rows[row] is not None:
+                    error = "gripper_table", row, rows[row]
+            if error is not None and not self._evicted_meanwhile(t):
+                name, index, res = error
+                self._mark_corrupt(name, t, index, res)
                 found += 1
-            except ReplayError:
-                pass  # evicted by a live writer meanwhile
         return found
 
     def get_trial(self, trial_id: int) -> StoredTrial:

@@ -86,6 +86,11 @@ def test_set_mends_a_combination_the_file_got_wrong_and_errors_name_the_values_s
         load_config(path, overrides=["learner.lr=0.001"])
     with pytest.raises(ConfigError, match=r"^--set: learner.batch_size: must be even"):
         load_config("default", overrides=["learner.batch_size=9"])
+    # a constraint broken by --set on another of its keys names --set, not the file
+    with pytest.raises(ConfigError, match=r"^--set: scene_grid.voxel_size: .* does not divide x_range"):
+        load_config("default", overrides=["scene_grid.x_range=[-0.19, 0.192]"])
+    with pytest.raises(ConfigError, match=r"^--set: learner.min_replay: 0 needs replay.seed_from"):
+        load_config("default", overrides=["learner={min_replay: 0}"])
 
 
 def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):

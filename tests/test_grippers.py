@@ -400,28 +400,37 @@ _MJCF = ("<mujoco model='m'><worldbody><body name='palm'><geom type='box' size='
          "size='0.005 0.005 0.02'/></body></body></worldbody></mujoco>")
 
 
-@pytest.mark.parametrize("suffix, text, field", [
-    ("urdf", "parallel_jaw", "joint finger_left_joint: limit lower: expected a number, got 'abc'"),
-    ("urdf", "parallel_jaw", "joint finger_right_joint: mimic multiplier: expected a number, got 'one'"),
+def _urdf_sub(pattern: str, replacement: str):
+    """A change to the parallel jaw's URDF (the first match of ``pattern``)."""
+    return lambda text: re.sub(pattern, replacement, text, count=1)
+
+
+@pytest.mark.parametrize("suffix, bad, field", [
+    ("urdf", _urdf_sub(r'lower="[^"]*"', 'lower="abc"'), "joint finger_left_joint: limit lower: expected a number, got 'abc'"),
+    ("urdf", _urdf_sub(r'multiplier="[^"]*"', 'multiplier="one"'), "joint finger_right_joint: mimic multiplier: expected a number"),
+    ("urdf", _urdf_sub(r'<mass value="[^"]*"', '<mass value="abc"'), "inertial mass: expected a number, got 'abc'"),
     ("sdf", _SDF.replace("<parent>palm</parent>", ""), "joint j: parent: missing"),
     ("sdf", _SDF.replace("<lower>0</lower>", "<lower>zero</lower>"), "joint j: limit lower: expected a number"),
+    ("sdf", _SDF.replace("<box><size>0.01 0.01 0.05</size></box>", "<box/>"), "link f collision box size: missing"),
+    ("sdf", _SDF.replace("<box><size>0.01 0.01 0.05</size></box>",
+                         "<cylinder><radius>abc</radius><length>0.05</length></cylinder>"), "cylinder radius: expected a number"),
     ("xml", _MJCF.replace("0.05 0.05 0.05", "0.05 0.05 abc"), "body palm size: expected a number, got 'abc'"),
     ("xml", _MJCF.replace("type='box' size='0.005", "type='box' contype='no' size='0.005"), "body f contype"),
 ])
-def test_a_malformed_number_or_element_in_the_source_is_one_line(tmp_path, suffix, text, field):
-    """A value of the robot file that is not a number, or a missing SDF joint element, names the
-    spec, the source file and the element, in one line (not a ValueError from deep inside)."""
+def test_a_malformed_number_or_element_in_the_source_is_one_line(tmp_path, suffix, bad, field):
+    """A value of the robot file that is not a number, or a missing element, names the spec, the
+    source file and the element in one line when the spec loads (not a ValueError from deep
+    inside, nor a failure later in every actor)."""
     data = _base(tmp_path)
-    if text == "parallel_jaw":
+    if callable(bad):
         source = Path(data["source"]).read_text()
-        bad = re.sub(r'lower="[^"]*"', 'lower="abc"', source, count=1) if "limit" in field else (
-            re.sub(r'multiplier="[^"]*"', 'multiplier="one"', source, count=1))
-        assert bad != source
+        text = bad(source)
+        assert text != source
     else:
-        bad = text
+        text = bad
         data.update(cut_link="palm", drive_joints=[{"name": "j", "open": 0.03, "closed": 0.0}], couplings=[])
     src = tmp_path / f"broken.{suffix}"
-    src.write_text(bad)
+    src.write_text(text)
     data["source"] = str(src)
     f = _write(tmp_path, data)
     with pytest.raises(GripperSpecError) as e:

@@ -214,6 +214,7 @@ def test_bad_config_value_is_one_line(tmp_path, capsys):
     ("grippers.train_grippers=nosuch", "grippers.train_grippers: nosuch: unknown gripper"),
     ("sim.objects=nosuch", "sim.objects: object set 'nosuch': unknown"),
     ("model.feature_cell=0.024", "scene_grid.voxel_size: model.feature_cell / voxel_size must be a power of 2"),
+    ("sim.fence_half_extent=0.01", "sim.drop_half_extent: 0.1 m must be below sim.fence_half_extent 0.01 m"),
 ])
 def test_a_name_or_network_the_run_cannot_use_is_one_line_and_starts_nothing(tmp_path, capsys, override, field):
     """An unknown training gripper or object set, or grids the network's widths cannot encode, is

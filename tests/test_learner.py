@@ -684,20 +684,41 @@ def test_initial_weights_follow_the_seed_not_the_process(filled_replay):
 
 def test_an_actor_whose_episodes_keep_failing_ends_the_run_with_the_error():
     """An error raised inside an actor's episodes (its process alive) is not a lost process to
-    restart forever: it is reported with its first line, and the third in a row ends the run."""
-    from ray.exceptions import RayTaskError
+    restart forever: it is reported with its first line, and the third in a row ends the run. A
+    cause that is a Ray error (a lost shard, a lost weights owner) is transient and not counted."""
+    from ray.exceptions import ActorDiedError, RayTaskError
 
     from learner.loop import ACTOR_TASK_FAILURES, ActorFailures, ActorTaskError
 
-    def task_error(message):
-        return RayTaskError("run_episodes", "Traceback ...", ValueError(message))
+    def task_error(cause):
+        return RayTaskError("run_episodes", "Traceback ...", cause)
 
     failures = ActorFailures(2)
-    assert failures.failed(0, task_error("openings must be a non-empty tuple\n  detail")) == (
-        "ValueError: openings must be a non-empty tuple")
+    assert failures.failed(0, task_error(ValueError("openings must be a non-empty tuple\n  detail"))) == (
+        "ValueError: openings must be a non-empty tuple", True)
     failures.succeeded(0)  # a chunk that ran clears the count
     for _ in range(ACTOR_TASK_FAILURES - 1):
-        failures.failed(0, task_error("bad"))
-        failures.failed(1, task_error("other"))
+        failures.failed(0, task_error(ValueError("bad")))
+        failures.failed(1, task_error(ValueError("other")))
+    for _ in range(5):
+        line, own = failures.failed(1, task_error(ActorDiedError()))
+        assert not own and line.startswith("ActorDiedError")
     with pytest.raises(ActorTaskError, match=r"^actor 1: 3 episode chunks in a row failed, the last with ValueError: x$"):
-        failures.failed(1, task_error("x"))
+        failures.failed(1, task_error(ValueError("x")))
+
+
+def test_a_resume_can_mend_the_runs_config_with_set(tmp_path):
+    """--set on --resume is applied before the cross-field checks: an odd batch size in the run's
+    config.yaml is mended by --set learner.batch_size=8, not refused."""
+    import yaml
+
+    from learner.run import parse_args, resolve
+
+    run = _tiny_run_with_one_trial(tmp_path / "run")
+    data = yaml.safe_load((run / "config.yaml").read_text())
+    data["learner"]["batch_size"] = 7
+    (run / "config.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="learner.batch_size: must be even"):
+        resolve(parse_args(["--resume", "--run-dir", str(run)]))
+    cfg, _ = resolve(parse_args(["--resume", "--run-dir", str(run), "--set", "learner.batch_size=8"]))
+    assert cfg.learner.batch_size == 8

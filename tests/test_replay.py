@@ -486,6 +486,14 @@ def test_unreadable_gripper_row_is_not_reused_by_later_trials(tmp_path):
     stored = shard.get_trial(new[0]).gripper_encoding
     assert np.abs(stored - enc[0]).max() <= 1.0 / cfg.replay.tsdf_levels + 1e-6  # opening index 0
     assert shard.stats()["corrupt"] == len(old)
+    # a writer that reopens the shard (a restarted shard actor) finds the row in the table again:
+    # it reads the row once before reusing it
+    shard.close()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    _chunk_file(tmp_path / "s", "gripper_table", int(shard.column("gripper_row", new[:1])[0])).write_bytes(b"rot")
+    with pytest.warns(ReplayCorruptWarning, match="gripper_table: chunk .* unreadable"):
+        later = [shard.insert(trial(i)) for i in range(6, 8)]
+    assert shard.read(later)["trial_id"].tolist() == later
 
 
 def test_insert_without_obstacle_removes_a_cut_off_writes_obstacle_chunk(tmp_path):
@@ -506,6 +514,22 @@ def test_insert_without_obstacle_removes_a_cut_off_writes_obstacle_chunk(tmp_pat
     assert not left.exists()
     g = zarr.open_group(str(tmp_path / "s"), mode="r")
     assert not g["obstacle"][1].any() and int(g["obstacle_voxels"][1]) == 0 and int(g["trial_id"][1]) == 4
+
+
+def test_a_reader_following_a_writer_does_not_call_evicted_trials_damaged(tmp_path):
+    """A trial the writer evicts while a reader (inspect on a live run) reads it may have lost its
+    chunks (an obstacle chunk is deleted when the slot's next trial has none): that is eviction,
+    not damage, and nothing is counted corrupt."""
+    cfg = tiny_cfg(capacity=4)
+    writer = ReplayShard(tmp_path / "s", cfg)
+    for i in range(4):
+        writer.insert(make_trial(cfg, i, n_objects=2, n_obstacles=2))
+    reader = ReplayShard(tmp_path / "s", read_only=True)
+    for i in range(4, 6):
+        writer.insert(make_trial(cfg, i))  # evicts trials 0 and 1 and deletes slot 0's obstacle chunk
+    assert reader.verify() == 0 and reader.stats()["corrupt"] == 0 and reader.problems() == []
+    with pytest.raises(ReplayError, match="not visible"):
+        reader.get_trial(0)
 
 
 def test_corrupt_column_chunk_loses_only_its_trials(tmp_path):
