@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights, network_difference, read_checkpoint
 from common.config import Config, ConfigError, config_path, load_config, save_config, set_flags
@@ -63,9 +64,9 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not (run_dir / "config.yaml").read_text().strip():
             raise ConfigError(f"{run_dir / 'config.yaml'}: empty; a run's config.yaml holds the config it started with")
         cfg = load_config(run_dir / "config.yaml", overrides=args.set)
-        # the file's seed_from, with the other overrides (which may mend the file's other keys)
-        others = [o for o in args.set if not o.split("=", 1)[0].strip().startswith("replay.seed_from")]
-        recorded = load_config(run_dir / "config.yaml", overrides=others).replay.seed_from
+        # the seed_from the run's file records (read as written: --set may mend its other keys)
+        stored = yaml.safe_load((run_dir / "config.yaml").read_text())
+        recorded = ((stored.get("replay") if isinstance(stored, dict) else None) or {}).get("seed_from") or ""
         if cfg.replay.seed_from != recorded:
             origin = f"seeded from {recorded}" if recorded else "started empty"
             raise ConfigError(

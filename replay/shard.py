@@ -758,10 +758,10 @@ class ReplayShard:
         row = self._row_of.get(key)
         if row is not None and row not in self._rows_read:
             res = self._io["gripper_table"].read(row)
-            if isinstance(res, str):
-                self._problem(f"{self.path}/gripper_table: chunk {row} unreadable ({res}); "
-                              f"its trials are lost, new ones get a fresh row")
-                del self._row_of[key]
+            if isinstance(res, str):  # its visible trials are lost with it; this one gets a fresh row
+                for t in self.visible_ids().tolist():
+                    if self._slot_row[t % self.slots] == row:
+                        self._mark_corrupt("gripper_table", t, row, res)
                 row = None
             else:
                 self._rows_read.add(row)

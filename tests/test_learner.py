@@ -722,3 +722,6 @@ def test_a_resume_can_mend_the_runs_config_with_set(tmp_path):
         resolve(parse_args(["--resume", "--run-dir", str(run)]))
     cfg, _ = resolve(parse_args(["--resume", "--run-dir", str(run), "--set", "learner.batch_size=8"]))
     assert cfg.learner.batch_size == 8
+    for seed in ("replay.seed_from=/elsewhere", "replay={seed_from: /elsewhere}"):  # a resumed run keeps its replay
+        with pytest.raises(ConfigError, match="replay.seed_from: a resumed run keeps its replay"):
+            resolve(parse_args(["--resume", "--run-dir", str(run), "--set", seed]))

@@ -486,14 +486,17 @@ def test_unreadable_gripper_row_is_not_reused_by_later_trials(tmp_path):
     stored = shard.get_trial(new[0]).gripper_encoding
     assert np.abs(stored - enc[0]).max() <= 1.0 / cfg.replay.tsdf_levels + 1e-6  # opening index 0
     assert shard.stats()["corrupt"] == len(old)
-    # a writer that reopens the shard (a restarted shard actor) finds the row in the table again:
-    # it reads the row once before reusing it
+    # a writer that reopens the shard (a restarted shard actor) finds the damaged row in the table
+    # again, as the row of the oldest trials of the key: it reads the row once before reusing it,
+    # counts those trials lost, and gives the key a fresh row
     shard.close()
     shard = ReplayShard(tmp_path / "s", cfg)
-    _chunk_file(tmp_path / "s", "gripper_table", int(shard.column("gripper_row", new[:1])[0])).write_bytes(b"rot")
-    with pytest.warns(ReplayCorruptWarning, match="gripper_table: chunk .* unreadable"):
+    assert shard.stats()["corrupt"] == 0 and set(old) <= set(shard.visible_ids().tolist())
+    with pytest.warns(ReplayCorruptWarning, match=f"gripper_table: chunk {row} of trial"):
         later = [shard.insert(trial(i)) for i in range(6, 8)]
+    assert row not in shard.column("gripper_row", later).tolist()
     assert shard.read(later)["trial_id"].tolist() == later
+    assert shard.stats()["corrupt"] == len(old) and not set(old) & set(shard.visible_ids().tolist())
 
 
 def test_insert_without_obstacle_removes_a_cut_off_writes_obstacle_chunk(tmp_path):
