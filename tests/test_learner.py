@@ -359,7 +359,8 @@ def test_init_weights_path_is_made_absolute_and_checked_until_the_run_has_a_chec
     source = LearnerProcess(cfg, client._shards, str(tmp_path / "source"), seed=0, torch_threads=1)
     source.checkpoint(epsilon=0.5, inserted=12)
     monkeypatch.chdir(tmp_path)
-    sets = [f"--set={o}" for o in SMALL] + ["--set=learner.init_weights=source/checkpoints/latest.pt"]
+    fence = ["sim.fence_half_extent=0.04", "sim.drop_half_extent=0.03"]  # a fence the small grid holds
+    sets = [f"--set={o}" for o in SMALL + fence] + ["--set=learner.init_weights=source/checkpoints/latest.pt"]
     fresh, run_dir = resolve(parse_args(["--config", "tiny", "--run-dir", "tuned", *sets]))
     assert fresh.learner.init_weights == str(checkpoint_path(tmp_path / "source"))
     assert load_config(run_dir / "config.yaml").learner.init_weights == fresh.learner.init_weights
