@@ -982,27 +982,25 @@ class ReplayShard:
         slot = t % self.slots
         row = int(self._col["gripper_row"][slot])
         n_obstacle = int(self._col["obstacle_voxels"][slot])
-        names = ("tsdf", "surface", "gripper_table") + (("obstacle",) if n_obstacle > 0 else ())
-        results = []
-        for nm, i in zip(names, (slot, slot, row, slot)):
-            res = self._io[nm].read(i)
+        evicted = f"{self.path}: trial {t}: evicted by the writer while it was read"
+        results = {}
+        for name, index in self._volume_chunks(slot):
+            res = self._io[name].read(index)
             if isinstance(res, str):
                 if self._evicted_meanwhile(t):
-                    raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
-                raise ReplayCorruptError(self._mark_corrupt(nm, t, i, res))
-            results.append(res)
-        if self.read_only:
-            self._first, self._end = self._read_commit()
-            if t < self._first:
-                raise ReplayError(f"{self.path}: trial {t}: evicted by the writer while it was read")
+                    raise ReplayError(evicted)
+                raise ReplayCorruptError(self._mark_corrupt(name, t, index, res))
+            results[name] = res
+        if self._evicted_meanwhile(t):
+            raise ReplayError(evicted)
         col = self._col
         return EncodedTrial(
-            tsdf=results[0],
-            obstacle=results[3] if n_obstacle > 0 else None,
+            tsdf=results["tsdf"],
+            obstacle=results.get("obstacle"),
             obstacle_voxels=n_obstacle,
-            surface=results[1],
+            surface=results["surface"],
             gripper_key=str(self._table["gripper_table_key"][row]),
-            gripper=results[2],
+            gripper=results["gripper_table"],
             action=tuple(int(v) for v in col["action"][slot]),
             label=bool(col["label"][slot] == 1),
             score=float(col["score"][slot]),
@@ -1012,6 +1010,14 @@ class ReplayShard:
             where=f"{self.path}: trial {t}",
         )
 
+    def _volume_chunks(self, slot: int) -> list[tuple[str, int]]:
+        """(array, chunk index) of every volume chunk of the trial in ``slot``: tsdf, surface,
+        obstacle where it has one, and its gripper-table row last."""
+        chunks = [("tsdf", slot), ("surface", slot)]
+        if int(self._col["obstacle_voxels"][slot]) > 0:
+            chunks.append(("obstacle", slot))
+        return chunks + [("gripper_table", int(self._col["gripper_row"][slot]))]
+
     def verify(self) -> int:
         """Read every visible trial's volume chunks (checksum, decompression; a gripper-table row
         once for all its trials); an unreadable one is marked corrupt like a failed sample read
@@ -1019,23 +1025,18 @@ class ReplayShard:
         found = 0
         rows: dict[int, str | None] = {}  # row -> error, None when readable
         for t in self.visible_ids().tolist():
-            slot = t % self.slots
-            row = int(self._col["gripper_row"][slot])
-            reads = [("tsdf", slot), ("surface", slot)]
-            if int(self._col["obstacle_voxels"][slot]) > 0:
-                reads.append(("obstacle", slot))
             error = None
-            for name, index in reads:
-                res = self._io[name].read(index)
+            for name, index in self._volume_chunks(t % self.slots):
+                if name == "gripper_table":
+                    if index not in rows:
+                        res = self._io[name].read(index)
+                        rows[index] = res if isinstance(res, str) else None
+                    res = rows[index]
+                else:
+                    res = self._io[name].read(index)
                 if isinstance(res, str):
                     error = name, index, res
                     break
-            if error is None:
-                if row not in rows:
-                    res = self._io["gripper_table"].read(row)
-                    rows[row] = res if isinstance(res, str) else None
-                if rows[row] is not None:
-                    error = "gripper_table", row, rows[row]
             if error is not None and not self._evicted_meanwhile(t):
                 name, index, res = error
                 self._mark_corrupt(name, t, index, res)
