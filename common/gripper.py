@@ -58,7 +58,7 @@ COUPLING_MODES = ("mimic", "measured", "target")
 """How a coupled joint follows its driver in PyBullet. mimic: a JOINT_GEAR constraint (rigid,
 two-way linkage); measured: a per-step position target at the driver's measured position;
 target: a per-step position target at the driver's commanded target (adaptive fingers)."""
-FORMAT_VERSION = "5"
+FORMAT_VERSION = "6"
 """Bumped whenever the processed-URDF layout changes, so cached files are rebuilt."""
 CACHE_ENV = "ADAGRASP_CACHE"
 """Environment variable that overrides the user cache directory."""
@@ -290,6 +290,11 @@ def _processed_urdf(spec_path: Path, text: str, source: Path, cut_link: str, kee
         raise GripperSpecError(f"{spec_path}: {field_name}: {source.name}: {e}") from None
     try:
         robot = freeze_joints(robot, keep, hold)
+        # the spec's couplings (which took in every <mimic>) move the joints; a <mimic> left in the
+        # file would make the kinematic model (yourdfpy honours it) disagree with PyBullet (which does not)
+        for joint in robot.findall("joint"):
+            for mimic in joint.findall("mimic"):
+                joint.remove(mimic)
         if base_mass is not None:
             _set_base_mass(robot, cut_link, base_mass)
         resolve_meshes(robot, source, out.parent / "meshes")

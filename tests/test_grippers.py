@@ -330,6 +330,37 @@ def _one_line(e: pytest.ExceptionInfo, *parts: str) -> None:
         assert part in msg, msg
 
 
+@pytest.mark.parametrize("override", [
+    {"couplings": [{"joint": "finger_right_joint", "driver": "finger_left_joint", "multiplier": 0.5, "mode": "target"}]},
+    {"couplings": [{"joint": "finger_right_joint", "driver": "finger_left_joint", "multiplier": 0.5,
+                    "offset": 0.004, "mode": "mimic"}]},
+    {"drive_joints": [{"name": "finger_left_joint", "open": 0.03, "closed": 0.0},
+                      {"name": "finger_right_joint", "open": 0.012, "closed": 0.0}], "couplings": []},
+], ids=["target-half", "mimic-half-offset", "second-drive"])
+def test_a_spec_that_overrides_a_urdf_mimic_poses_the_model_as_pybullet_does(tmp_path, client, override):
+    """The parallel jaw's URDF ``<mimic>``s its right finger to the left one. A spec that couples
+    the right finger otherwise, or drives it, must pose the kinematic model (what the gripper
+    encoding and the reach see) where PyBullet puts the fingers, not where the file's ``<mimic>`` would."""
+    data = _base(tmp_path)
+    assert "<mimic joint=\"finger_left_joint\"" in Path(data["source"]).read_text()
+    data.update(override)
+    spec = load_spec(_write(tmp_path, data, "override.yaml"))
+    assert "<mimic" not in spec.urdf.read_text()
+    g = BulletGripper(client, spec, 1.2)
+    model = GripperModel(spec, 1.2)
+    for opening in (1.0, 0.4):
+        g.reset(Transform.from_yaw(0.3, (0.1, 0, 0.5)), opening)
+        T_tcp_world = g.tcp_pose().inverse()
+        poses = model.link_poses(opening)
+        for link in ("finger_left", "finger_right"):
+            st = p.getLinkState(g.body_id, g._link[link], computeForwardKinematics=True, physicsClientId=client)
+            sim = (T_tcp_world * Transform.from_quat(st[5], st[4])).as_matrix()
+            np.testing.assert_allclose(poses[link], sim, atol=1e-5, err_msg=f"{link} at opening {opening}")
+    q = joint_positions(spec, 1.0, 1.2)
+    assert abs(q["finger_right_joint"]) != pytest.approx(abs(q["finger_left_joint"]), abs=1e-3)
+    g.remove()
+
+
 def test_mount_rpy_round_trips_near_pitch_90_degrees():
     """The arm's fixed-joint rpy rebuilds its rotation, also within mrad of pitch +-pi/2 (an
     approach axis near the base x axis), where Euler angles from a quaternion lose precision."""
