@@ -1,6 +1,7 @@
 """The AdaGrasp network: batched inference against the per-rotation loop, shapes at both scales,
 the loss's gradient, rotation conventions (90-degree equivariance of the argmax, the gripper's
-yaw on a hand-built scene), the correlation methods, the kernel cache, config errors."""
+yaw on a hand-built scene, the decoder's centring), the correlation methods, the kernel cache,
+config errors."""
 
 import math
 
@@ -229,6 +230,28 @@ def test_yaw_convention_on_a_hand_built_scene(monkeypatch, rotate):
         assert np.allclose(tcp, corner), tcp
         around = {(corner[0] - di, corner[1] - dj) for di in (0, 1) for dj in (0, 1)}
         assert best == around, (k, sorted(best), tcp)
+
+
+@pytest.mark.parametrize("variant", ["adagrasp", "scene-only"])
+def test_decoder_with_mirror_symmetric_kernels_commutes_with_a_mirror(variant):
+    """With every decoder kernel made mirror-symmetric, the decoder must commute with mirroring its
+    input along x and along y: its output grid is centred on the correlation lattice (corner or
+    centre samples), so a score map shifted by a cell, or padded on one side only, fails here."""
+    cfg, model = small_model(f"model.variant={variant}", seed=6)
+    assert model.corners == (variant == "adagrasp")
+    decoder = [model.dec_in, model.dec_res0, *model.dec_up, *model.dec_res, model.dec_out]
+    with torch.no_grad():
+        for m in (m for part in decoder for m in part.modules()):
+            if isinstance(m, torch.nn.Conv2d):
+                w = m.weight
+                w.copy_((w + w.flip(-1) + w.flip(-2) + w.flip(-1, -2)) / 4)
+        gen = torch.Generator().manual_seed(6)
+        maps = torch.rand(3, model.channels, *model.lattice0, generator=gen)
+        out = model.decode(maps)
+        assert out.shape == (3, 2, *model.scene_shape[:2])
+        for dim in (2, 3):
+            mirrored = model.decode(maps.flip(dim))
+            assert float((mirrored - out.flip(dim)).abs().max()) < 1e-4 * float(out.abs().max()), dim
 
 
 def test_rotation_taps_quarter_turn_is_exact():
