@@ -58,7 +58,7 @@ COUPLING_MODES = ("mimic", "measured", "target")
 """How a coupled joint follows its driver in PyBullet. mimic: a JOINT_GEAR constraint (rigid,
 two-way linkage); measured: a per-step position target at the driver's measured position;
 target: a per-step position target at the driver's commanded target (adaptive fingers)."""
-FORMAT_VERSION = "6"
+FORMAT_VERSION = "7"
 """Bumped whenever the processed-URDF layout changes, so cached files are rebuilt."""
 CACHE_ENV = "ADAGRASP_CACHE"
 """Environment variable that overrides the user cache directory."""
@@ -308,6 +308,17 @@ def _processed_urdf(spec_path: Path, text: str, source: Path, cut_link: str, kee
     return out
 
 
+def _moving_couplings(couplings: list[Coupling], drive_names: set[str]) -> tuple[list[Coupling], list[Coupling]]:
+    """Split ``couplings`` (order kept) into those that move (their driver is a drive joint or,
+    along a chain, follows one) and those that follow a frozen joint."""
+    moving = set(drive_names)
+    while True:
+        more = {c.joint for c in couplings if c.driver in moving} - moving
+        if not more:
+            return [c for c in couplings if c.joint in moving], [c for c in couplings if c.joint not in moving]
+        moving |= more
+
+
 def _descendant_links(robot_joints: dict[str, dict], joints: set[str]) -> tuple[str, ...]:
     children: dict[str, list[str]] = {}
     for info in robot_joints.values():
@@ -398,6 +409,7 @@ def load_spec(path: str | Path) -> GripperSpec:
         if jn in drive_names:
             continue
         couplings.append(Coupling(jn, driver, mult, off, "mimic", table[jn]["type"] == "prismatic", True))
+    declared: dict[str, int] = {}
     for i, c in enumerate(data.get("couplings") or []):
         where = f"{path}: couplings[{i}]"
         if not isinstance(c, dict) or set(c) - {"joint", "driver", "multiplier", "offset", "mode"} or not {"joint", "driver"} <= set(c):
@@ -411,9 +423,7 @@ def load_spec(path: str | Path) -> GripperSpec:
         couplings = [k for k in couplings if k.joint != c["joint"]]
         couplings.append(Coupling(c["joint"], c["driver"], _num(c, "multiplier", where, 1.0), _num(c, "offset", where, 0.0),
                                   mode, table[c["joint"]]["type"] == "prismatic", False))
-    # a <mimic> of a joint the spec does not drive follows a frozen joint, so it is frozen too
-    coupled = {c.joint for c in couplings}
-    couplings = [c for c in couplings if c.driver in drive_names | coupled]
+        declared[c["joint"]] = i
     for c in couplings:
         if c.joint in drive_names:
             raise GripperSpecError(f"{path}: couplings: joint {c.joint!r} is also a drive joint")
@@ -425,13 +435,31 @@ def load_spec(path: str | Path) -> GripperSpec:
         if jn not in table:
             raise GripperSpecError(f"{path}: hold_joints.{jn}: joint does not exist in {source.name}")
         _num(hold, jn, f"{path}: hold_joints")
+    held = {k: float(v) for k, v in hold.items()}
+
+    couplings, frozen = _moving_couplings(couplings, drive_names)
+    for c in frozen:
+        if not c.from_mimic:
+            raise GripperSpecError(f"{path}: couplings[{declared[c.joint]}].driver: joint {c.driver!r} is neither "
+                                   "driven nor coupled to a drive joint, so it is frozen")
+    # a <mimic> of a frozen joint is frozen too, where its <mimic> puts it (hold_joints may say
+    # otherwise); a <mimic> cycle that no drive joint enters stays at 0
+    pending = [c for c in frozen if c.joint not in held]
+    while pending:
+        waiting = {c.joint for c in pending}
+        ready = [c for c in pending if c.driver not in waiting]
+        if not ready:
+            break
+        for c in ready:
+            held[c.joint] = c.multiplier * held.get(c.driver, 0.0) + c.offset
+        pending = [c for c in pending if c not in ready]
 
     keep = drive_names | {c.joint for c in couplings}
     base_mass = _scalar(data, "base_mass", path, 1.0) if "base_mass" in data else None
     inertia = data.get("inertia", "file")
     if inertia not in ("file", "geometry"):
         raise GripperSpecError(f"{path}: inertia: expected file or geometry, got {inertia!r}")
-    urdf = _processed_urdf(path, text, source, cut_link, keep, {k: float(v) for k, v in hold.items()}, base_mass, inertia)
+    urdf = _processed_urdf(path, text, source, cut_link, keep, held, base_mass, inertia)
     finger_links = _descendant_links(table, keep)
 
     friction = _scalar(data, "friction", path, 1.0)

@@ -469,6 +469,46 @@ def test_a_malformed_number_or_element_in_the_source_is_one_line(tmp_path, suffi
     _one_line(e, str(f), f"source: broken.{suffix}: ", field)
 
 
+def _slider(name: str, y: float, z: float, axis: str, limits: tuple[float, float], mimic: str = "") -> str:
+    """A prismatic joint from the palm to a small box link ``<name>_link`` (URDF text)."""
+    return (f"<link name='{name}_link'><collision><geometry><box size='0.01 0.01 0.01'/></geometry></collision></link>"
+            f"<joint name='{name}' type='prismatic'><parent link='palm'/><child link='{name}_link'/>"
+            f"<origin xyz='0 {y} {z}'/><axis xyz='{axis}'/>"
+            f"<limit lower='{limits[0]}' upper='{limits[1]}' effort='1' velocity='1'/>{mimic}</joint>")
+
+
+def test_held_joints_and_their_mimic_followers_freeze_where_the_file_puts_them(tmp_path):
+    """A joint frozen by ``hold_joints`` sits at its value; a ``<mimic>`` follower of it (and a
+    follower of that follower) is frozen where its ``<mimic>`` puts it, not at 0, and a joint that
+    is neither driven, coupled nor held sits at 0."""
+    urdf = tmp_path / "held.urdf"
+    urdf.write_text(
+        "<robot name='held'><link name='palm'><collision><geometry><box size='0.1 0.1 0.02'/></geometry></collision></link>"
+        + _slider("a", 0.03, 0.0, "1 0 0", (-0.05, 0.05))
+        + _slider("b", -0.03, 0.0, "1 0 0", (-0.05, 0.05), "<mimic joint='a' multiplier='2' offset='0.005'/>")
+        + _slider("d", 0.0, 0.03, "1 0 0", (-0.05, 0.05), "<mimic joint='b' multiplier='1' offset='0.001'/>")
+        + _slider("e", 0.0, 0.06, "1 0 0", (-0.05, 0.05))
+        + _slider("c", 0.0, -0.03, "0 1 0", (0.0, 0.04))
+        + "</robot>"
+    )
+    data = _base(tmp_path)
+    data.update(source=str(urdf), cut_link="palm", drive_joints=[{"name": "c", "open": 0.04, "closed": 0.0}],
+                couplings=[], hold_joints={"a": 0.01})
+    spec = load_spec(_write(tmp_path, data, "held.yaml"))
+    assert spec.joint_names == ("c",)
+    poses = GripperModel(spec, 1.0, frame="base").link_poses(0.5)
+    expected = {"a_link": (0.01, 0.03, 0.0), "b_link": (0.025, -0.03, 0.0), "d_link": (0.026, 0.0, 0.03),
+                "e_link": (0.0, 0.0, 0.06), "c_link": (0.0, 0.02, -0.03)}
+    for link, xyz in expected.items():
+        np.testing.assert_allclose(poses[link][:3, 3], xyz, atol=1e-9, err_msg=link)
+    # a declared coupling must follow a joint that moves
+    data["couplings"] = [{"joint": "e", "driver": "a", "mode": "target"}]
+    f = _write(tmp_path, data, "frozen-driver.yaml")
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "couplings[0].driver: joint 'a' is neither driven nor coupled")
+
+
 def test_missing_mesh_and_missing_source(tmp_path):
     urdf = tmp_path / "nomesh.urdf"
     urdf.write_text(
