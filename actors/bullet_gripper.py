@@ -174,9 +174,9 @@ class BulletGripper:
                                         physicsClientId=client)
                 gear = p.createConstraint(self.body_id, self._joint[c.driver], self.body_id, j, p.JOINT_GEAR,
                                           [0, 0, 1], [0, 0, 0], [0, 0, 0], physicsClientId=client)
-                offset = c.offset * (self.scale if c.prismatic else 1.0)
+                offset, ratio = c.offset * (self.scale if c.prismatic else 1.0), c.ratio(self.scale)
                 # PyBullet's gear holds q_driver + ratio * q_joint = target
-                p.changeConstraint(gear, gearRatio=-1.0 / c.multiplier, relativePositionTarget=-offset / c.multiplier,
+                p.changeConstraint(gear, gearRatio=-1.0 / ratio, relativePositionTarget=-offset / ratio,
                                    maxForce=GEAR_FORCE_FACTOR * spec.coupling_force, erp=GEAR_ERP, physicsClientId=client)
                 self._gears.append(gear)
         self._geared = {c.joint for c in spec.couplings if c.mode == "mimic" and abs(c.multiplier) > 1e-9}
@@ -259,7 +259,7 @@ class BulletGripper:
                 base = targets.get(src)
                 if base is None:
                     base = p.getJointState(self.body_id, self._joint[src], physicsClientId=self.client)[0]
-            q = c.multiplier * base + c.offset * (self.scale if c.prismatic else 1.0)
+            q = c.value(base, self.scale)
             targets[c.joint] = q
             measured.setdefault(c.joint, q)
             p.setJointMotorControl2(self.body_id, self._joint[c.joint], p.POSITION_CONTROL, targetPosition=q,
@@ -284,7 +284,7 @@ class BulletGripper:
         err = 0.0
         for c in self.spec.couplings:
             if c.mode in ("mimic", "measured"):
-                want = c.multiplier * q[c.driver] + c.offset * (self.scale if c.prismatic else 1.0)
+                want = c.value(q[c.driver], self.scale)
                 err = max(err, abs(q[c.joint] - want))
         return err
 

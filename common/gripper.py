@@ -58,7 +58,7 @@ COUPLING_MODES = ("mimic", "measured", "target")
 """How a coupled joint follows its driver in PyBullet. mimic: a JOINT_GEAR constraint (rigid,
 two-way linkage); measured: a per-step position target at the driver's measured position;
 target: a per-step position target at the driver's commanded target (adaptive fingers)."""
-FORMAT_VERSION = "7"
+FORMAT_VERSION = "8"
 """Bumped whenever the processed-URDF layout changes, so cached files are rebuilt."""
 CACHE_ENV = "ADAGRASP_CACHE"
 """Environment variable that overrides the user cache directory."""
@@ -99,7 +99,8 @@ class DriveJoint:
 
 @dataclass(frozen=True)
 class Coupling:
-    """``joint = multiplier * driver + offset`` (offset in m or rad at scale 1)."""
+    """``joint = multiplier * driver + offset`` at scale 1 (m or rad; the multiplier in the joint's
+    unit per the driver's)."""
 
     joint: str
     driver: str
@@ -107,7 +108,20 @@ class Coupling:
     offset: float
     mode: str
     prismatic: bool
+    """The joint slides (its positions scale with the gripper)."""
     from_mimic: bool
+    """Read from the file's ``<mimic>`` (not declared by the spec)."""
+    driver_prismatic: bool
+    """The driver slides."""
+
+    def ratio(self, scale: float) -> float:
+        """d joint / d driver on a gripper at ``scale``: a slider following a hinge moves ``scale``
+        times as far per radian, a hinge following a slider turns as far per scaled metre."""
+        return self.multiplier * (scale if self.prismatic else 1.0) / (scale if self.driver_prismatic else 1.0)
+
+    def value(self, q_driver: float, scale: float) -> float:
+        """The joint's position (m or rad) with the driver at ``q_driver`` (m or rad) at ``scale``."""
+        return self.ratio(scale) * q_driver + self.offset * (scale if self.prismatic else 1.0)
 
 
 @dataclass(frozen=True)
@@ -187,7 +201,7 @@ def joint_positions(spec: GripperSpec, opening: float, scale: float = 1.0) -> di
         rest = []
         for c in pending:
             if c.driver in q:
-                q[c.joint] = c.multiplier * q[c.driver] + c.offset * (scale if c.prismatic else 1.0)
+                q[c.joint] = c.value(q[c.driver], scale)
             else:
                 rest.append(c)
         if len(rest) == len(pending):
@@ -408,7 +422,8 @@ def load_spec(path: str | Path) -> GripperSpec:
     for jn, driver, mult, off in mimics:
         if jn in drive_names:
             continue
-        couplings.append(Coupling(jn, driver, mult, off, "mimic", table[jn]["type"] == "prismatic", True))
+        couplings.append(Coupling(jn, driver, mult, off, "mimic", table[jn]["type"] == "prismatic", True,
+                                  table[driver]["type"] == "prismatic"))
     declared: dict[str, int] = {}
     for i, c in enumerate(data.get("couplings") or []):
         where = f"{path}: couplings[{i}]"
@@ -422,7 +437,8 @@ def load_spec(path: str | Path) -> GripperSpec:
             raise GripperSpecError(f"{where}.mode: expected one of {list(COUPLING_MODES)}, got {mode!r}")
         couplings = [k for k in couplings if k.joint != c["joint"]]
         couplings.append(Coupling(c["joint"], c["driver"], _num(c, "multiplier", where, 1.0), _num(c, "offset", where, 0.0),
-                                  mode, table[c["joint"]]["type"] == "prismatic", False))
+                                  mode, table[c["joint"]]["type"] == "prismatic", False,
+                                  table[c["driver"]]["type"] == "prismatic"))
         declared[c["joint"]] = i
     for c in couplings:
         if c.joint in drive_names:
@@ -451,7 +467,7 @@ def load_spec(path: str | Path) -> GripperSpec:
         if not ready:
             break
         for c in ready:
-            held[c.joint] = c.multiplier * held.get(c.driver, 0.0) + c.offset
+            held[c.joint] = c.value(held.get(c.driver, 0.0), 1.0)
         pending = [c for c in pending if c not in ready]
 
     keep = drive_names | {c.joint for c in couplings}

@@ -509,6 +509,44 @@ def test_held_joints_and_their_mimic_followers_freeze_where_the_file_puts_them(t
     _one_line(e, str(f), "couplings[0].driver: joint 'a' is neither driven nor coupled")
 
 
+@pytest.mark.parametrize("mode", ["mimic", "target"])
+def test_couplings_between_a_hinge_and_a_slider_scale_with_the_gripper(tmp_path, client, mode):
+    """A slider following a hinge (m per rad) moves twice as far on a gripper at scale 2, and a
+    hinge following that slider (rad per m) turns as far at any scale: a coupling's multiplier is
+    given at scale 1, in the follower's unit per the driver's. PyBullet reaches those values too."""
+    hinge = ("<link name='h_link'><collision><geometry><box size='0.01 0.01 0.01'/></geometry></collision></link>"
+             "<joint name='h' type='revolute'><parent link='palm'/><child link='h_link'/><origin xyz='0 0 -0.03'/>"
+             "<axis xyz='0 0 1'/><limit lower='0' upper='1' effort='1' velocity='1'/></joint>")
+    urdf = tmp_path / "mixed.urdf"
+    urdf.write_text(
+        "<robot name='mixed'><link name='palm'><collision><geometry><box size='0.1 0.1 0.02'/></geometry></collision></link>"
+        + hinge + _slider("s", 0.03, -0.03, "1 0 0", (-0.05, 0.05)) + _slider("r", -0.03, -0.03, "0 1 0", (-1.0, 1.0))
+        + "</robot>"
+    )
+    urdf.write_text(urdf.read_text().replace("name='r' type='prismatic'", "name='r' type='revolute'").replace(
+        "<axis xyz='0 1 0'/>", "<axis xyz='0 0 1'/>"))
+    data = _base(tmp_path)
+    data.update(source=str(urdf), cut_link="palm", drive_joints=[{"name": "h", "open": 1.0, "closed": 0.0}],
+                couplings=[{"joint": "s", "driver": "h", "multiplier": 0.02, "offset": 0.001, "mode": mode},
+                           {"joint": "r", "driver": "s", "multiplier": 10.0, "mode": mode}])
+    spec = load_spec(_write(tmp_path, data, "mixed.yaml"))
+    for scale in (1.0, 2.0):
+        q = joint_positions(spec, 1.0, scale)
+        assert q["s"] == pytest.approx(0.021 * scale) and q["r"] == pytest.approx(0.21), (scale, q)
+    g = BulletGripper(client, spec, 2.0)
+    g.reset(Transform.from_yaw(0.0, (0, 0, 0.5)), 1.0)
+    g.set_opening_target(0.5)
+    for _ in range(480):
+        g.step()
+        p.stepSimulation(physicsClientId=client)
+    q, want = g.joint_state(), joint_positions(spec, 0.5, 2.0)
+    assert want["s"] == pytest.approx(0.022) and want["r"] == pytest.approx(0.11)
+    for name in ("h", "s", "r"):
+        assert q[name] == pytest.approx(want[name], abs=2e-3 if name == "s" else 2e-2), (name, q, want)
+    assert g.coupling_error() < (1e-3 if mode == "mimic" else np.inf)
+    g.remove()
+
+
 def test_missing_mesh_and_missing_source(tmp_path):
     urdf = tmp_path / "nomesh.urdf"
     urdf.write_text(
