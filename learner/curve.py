@@ -56,7 +56,8 @@ def read_progress(run: Path) -> list[dict]:
         missing = [k for k in PROGRESS_KEYS if not isinstance(record, dict) or k not in record]
         if missing:
             raise ValueError(f"{path}: line {n}: {missing[0]}: missing (not a progress record)")
-        lines.append(record)
+        # a value not yet known (the loss before the first step) is null, or NaN in older files
+        lines.append({**record, **{k: math.nan for k in PROGRESS_KEYS if record[k] is None}})
     return lines
 
 

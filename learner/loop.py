@@ -37,6 +37,7 @@ from common.checkpoint import (
     save_checkpoint,
 )
 from common.config import Config
+from common.files import finite_json
 from common.policy import action_region
 from common.runtime import ray_init
 from common.tsdf import heightmap_from_tsdf
@@ -336,7 +337,7 @@ class Progress:
         }
         if force or now - self.last_print >= 5.0:
             self.last_print = now
-            self.log.write(json.dumps(line) + "\n")
+            self.log.write(json.dumps(finite_json(line)) + "\n")
             self.log.flush()
             step = int(stats.get("steps", 0))
             for key in ("loss", "pos_score", "neg_score"):
@@ -632,7 +633,7 @@ def run_distributed(
         finally:
             progress.close()
             ray.shutdown()
-    (Path(run_dir) / "history.json").write_text(json.dumps(history))
+    (Path(run_dir) / "history.json").write_text(json.dumps(finite_json(history)))
     return _summary(
         run_dir, inserted, stats, progress,
         {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts,

@@ -30,7 +30,7 @@ import yaml
 
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights, network_difference, read_checkpoint
 from common.config import Config, ConfigError, config_path, load_config, save_config, set_flags
-from common.files import atomic_write_text
+from common.files import atomic_write_text, finite_json
 from replay.schema import ReplayError
 
 
@@ -201,6 +201,7 @@ def cli(argv: list[str]) -> int:
         signal.signal(signal.SIGINT, previous)
     summary_file = run_dir / "summary.json"
     summary = with_earlier_parts(summary_file, summary)
+    summary = finite_json(summary)
     atomic_write_text(summary_file, json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
     if "error" in summary:  # actors whose episodes kept failing ended the run (final checkpoint written)

@@ -38,6 +38,27 @@ def test_curve_draws_progress_and_greedy_points(tmp_path, capsys):
     assert out.stat().st_size > 10_000
 
 
+def test_progress_before_the_first_step_is_strict_json_and_still_draws(tmp_path):
+    """The loss and success rate before the first learner step and episode are null, not NaN
+    (which strict JSON parsers refuse); the curve reads such a file."""
+    from common.config import load_config
+    from learner.loop import Progress
+
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    run = tmp_path / "run"
+    run.mkdir()
+    progress = Progress(load_config("default"), run, quiet=True)
+    progress.tick(0, {}, 0.8, force=True)
+    progress.tick(12, {"steps": 2, "samples": 8, "loss": 0.69, "version": 1}, 0.7, force=True)
+    progress.close()
+    first, second = (json.loads(line, parse_constant=refuse) for line in (run / "progress.jsonl").read_text().splitlines())
+    assert first["loss"] is None and first["success_rate"] is None and first["weights_lag"] is None
+    assert second["loss"] == 0.69 and second["trials"] == 12
+    assert main([str(run), "--out", str(tmp_path / "curve.png")]) == 0
+
+
 def test_curve_errors_are_one_line(tmp_path, capsys):
     bad = tmp_path / "scripted.json"
     bad.write_text(json.dumps({"trials": 5, "successes": 1, "success_rate": 0.2}))
