@@ -618,6 +618,7 @@ def run_distributed(
                 print(f"actor {a}: close failed at shutdown ({type(e).__name__})", flush=True)
         try:
             stats = ray.get(learner_future)
+            published += stats["weights"] is not None  # the last chunk's version, which no actor took
         except (RayActorError, RayTaskError) as e:
             # A learner chunk that failed (the error that ended the loop, or one at shutdown): the
             # learner, alive or restarted from latest.pt, still writes the final checkpoint.

@@ -77,6 +77,7 @@ def test_two_actor_run_collects_trains_and_publishes(tmp_path):
     assert summary["trials"] >= 30
     assert summary["learner_steps"] > 0
     assert summary["weights_published"] >= 2
+    assert summary["weights_published"] == summary["weights_version"]  # one version each, from 1, none lost
     # The actor side of the rate limiter: inserts never lead the learner's schedule by the
     # allowance plus one in-flight single-object episode per actor.
     cfg = load_config(run_dir / "config.yaml")
