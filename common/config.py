@@ -479,6 +479,8 @@ def _coerce(name: str, tp: Any, value: Any, source: str) -> Any:
             raise ConfigError(f"{source}: {name}: expected true or false, got {value!r}")
         return value
     if tp is str:
+        if value is None:  # `--set key=` or an empty YAML value: the empty string (the "none" of a path)
+            return ""
         if not isinstance(value, str):
             raise ConfigError(f"{source}: {name}: expected a string, got {value!r}")
         return value

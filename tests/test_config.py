@@ -93,6 +93,18 @@ def test_set_mends_a_combination_the_file_got_wrong_and_errors_name_the_values_s
         load_config("default", overrides=["learner={min_replay: 0}"])
 
 
+def test_an_empty_value_of_a_text_field_is_the_empty_string(tmp_path):
+    """``--set learner.init_weights=`` and an empty YAML value clear a path field (the empty string
+    is its "none"); a text field that must name something still refuses it in one line."""
+    cfg = load_config("default", overrides=["learner.init_weights=model:x", "learner.init_weights="])
+    assert cfg.learner.init_weights == ""
+    f = tmp_path / "empty.yaml"
+    f.write_text("replay:\n  seed_from:\n")
+    assert load_config(f).replay.seed_from == ""
+    with pytest.raises(ConfigError, match=r"^--set: model\.variant: .*''"):
+        load_config("default", overrides=["model.variant="])
+
+
 def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
     """PyYAML reads YAML 1.1, where 1e-4 is a string; in --set and in YAML files it is the number
     1e-4 (YAML 1.2), and the saved config reads back the same. Words stay errors."""
