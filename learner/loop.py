@@ -128,6 +128,7 @@ class LearnerProcess:
             torch.set_num_threads(torch_threads or max(1, min(os.cpu_count() or 1, 4)))
         self.replay = ReplayClient(shards, cfg, seed=seed)
         self.learner = Learner(cfg, self.replay, device=device, seed=seed)
+        self.seed = seed
         ckpt = checkpoint_path(self.run_dir)
         self.resumed_from = None
         self.next_episode: list[int] = []
@@ -257,9 +258,10 @@ class LearnerProcess:
     def score_map_image(self) -> tuple[int, np.ndarray] | None:
         """(learner step, (H, W, 3) uint8 image): the policy weights' score maps (3 of the R
         rotations, best marked) of one replayed trial's scene and gripper at its executed opening;
-        None while the replay holds no trial."""
+        None while the replay holds no trial. The trial is drawn by a generator of its own (seeded
+        by the run seed and the step), so the training batches do not depend on when images are made."""
         try:
-            batch = self.replay.sample(2)
+            batch = self.replay.sample(2, np.random.default_rng([self.seed, self.learner.stats.steps]))
         except ReplayEmptyError:
             return None
         model = self.learner.policy_model

@@ -210,18 +210,20 @@ class ReplayClient:
         scores = np.concatenate([d["score"] for d in idx]).astype(np.float32)
         return shard_of, ids, labels, scores
 
-    def sample(self, batch_size: int) -> ReplayBatch:
+    def sample(self, batch_size: int, rng: np.random.Generator | None = None) -> ReplayBatch:
         """A batch of ``batch_size`` trials (even), half successes and half failures, surprise-ranked.
 
         Trials evicted or found corrupt between the index and the read are replaced by fresh
         draws of the same class. Raises ReplayEmptyError when no shard holds a readable trial.
+        ``rng``: the generator that draws (default the client's own, whose state checkpoints keep).
         """
+        rng = self._rng if rng is None else rng
         shard_of, ids, labels, scores = self._gather_index()
         if not len(ids):
             raise ReplayEmptyError(f"replay: no readable trial in {len(self._shards)} shard(s)")
         excluded = np.zeros(len(ids), bool)
         parts: dict[int, dict] = {}
-        pos, balanced = draw_balanced(labels, scores, batch_size, self._rng)
+        pos, balanced = draw_balanced(labels, scores, batch_size, rng)
         chosen = np.empty(0, np.int64)
         while True:  # every round excludes its unreadable trials for good, so the rounds end
             got = self._read(shard_of, ids, pos, parts)
@@ -237,12 +239,12 @@ class ReplayClient:
             # a class with enough untaken trials draws without repeats; a short one may repeat
             short = np.where(labels, (~taken & labels).sum() < need_success, (~taken & ~labels).sum() < need_failure)
             pos, ok = draw_counts(  # ReplayEmptyError once every trial is excluded
-                labels, scores, need_success, need_failure, self._rng, exclude=excluded | (taken & ~short),
+                labels, scores, need_success, need_failure, rng, exclude=excluded | (taken & ~short),
             )
             balanced &= ok
         self.counters["samples"] += 1
         self.counters["unbalanced_batches"] += int(not balanced)
-        self._rng.shuffle(chosen)
+        rng.shuffle(chosen)
         return self._assemble(chosen, shard_of, ids, parts, balanced)
 
     def _read(self, shard_of: np.ndarray, ids: np.ndarray, positions: np.ndarray, parts: dict) -> np.ndarray:

@@ -167,7 +167,9 @@ def test_checkpoint_snapshot_and_score_map_image(filled_replay, tmp_path):
     snap = read_checkpoint(checkpoint_path(tmp_path / "run").parent / "step-0000001.pt")
     assert latest.optimizer is not None and snap.optimizer is None and snap.step == latest.step == 1
     assert all(torch.equal(snap.model_state[k], v) for k, v in latest.model_state.items())
+    sampler = proc.replay.sampler_state()
     step, image = proc.score_map_image()
+    assert proc.replay.sampler_state() == sampler, "the image must not draw from the training sampler"
     assert step == 1 and image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
     assert image.std() > 0, "a drawn figure, not a blank image"
     assert proc.learner.model.training, "the learner's model goes back to training mode"
