@@ -26,7 +26,8 @@ scene is the unit throughout: the grippers and attempts of one scene stay togeth
   grippers in every pair.
 
 The scenes must be the same scenes: the same scene kind and object set, and for every shared
-scene seed the same objects in the same roles in every record of both files; an ``adagrasp``
+scene seed the same objects in the same roles in every record of both files; both files must
+have the same attempt cap and gripper scale (when they record them); an ``adagrasp``
 result compared with a per-gripper one must choose among that result's grippers. Otherwise the
 comparison stops with one line naming the file and the key.
 """
@@ -272,7 +273,7 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
     leave out a shared scene seed whose objects differ between records (recorded in
     ``Side.dropped``) instead of stopping. Raises :class:`EvaluationError` (one line naming the
     file and the key) when they are not the same scenes (scene kind, object set, or the objects
-    of a shared seed) or share none, share no gripper, when ``adagrasp`` chose among other
+    of a shared seed) or protocol (attempt cap, gripper scale) or share none, share no gripper, when ``adagrasp`` chose among other
     grippers than the per-gripper result ran, or on a malformed record. The object check compares
     names and roles: necessary for the same scenes, not sufficient (objects placed elsewhere with
     the same draw pass it).
@@ -283,6 +284,9 @@ def pair(path_a: str, a: dict, path_b: str, b: dict, only: list[str] | None = No
                 raise EvaluationError(f"{path}: {key}: missing")
         if a[key] != b[key]:
             raise EvaluationError(f"{path_b}: {key}: {b[key]!r}, but {path_a} has {a[key]!r}: not the same scenes")
+    for key in ("max_attempts", "scale"):  # the same trials per scene, the same gripper size
+        if key in a and key in b and a[key] != b[key]:
+            raise EvaluationError(f"{path_b}: {key}: {b[key]!r}, but {path_a} has {a[key]!r}: not the same protocol")
     ea, eb = _episodes(path_a, a), _episodes(path_b, b)
     ga, gb = _grippers(path_a, ea, only), _grippers(path_b, eb, only)
     if ga != [None] and gb != [None]:

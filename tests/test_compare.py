@@ -380,6 +380,18 @@ def test_all_scenes_mismatched_or_no_candidates_is_one_line(tmp_path, capsys):
     assert "ada.json: gripper_names: expected a non-empty list" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("key, other", [("max_attempts", 7), ("scale", 0.8)])
+def test_another_attempt_cap_or_gripper_scale_is_not_the_same_protocol(tmp_path, capsys, key, other):
+    a, b = result("fix-gripper", FG_A, SEEDS), result("fix-gripper", FG_B, SEEDS)
+    a[key] = b[key] = {"max_attempts": 5, "scale": 1.0}[key]
+    assert cmp.pair("a", a, "b", b)[0].scene_seeds == tuple(SEEDS)
+    b[key] = other
+    paths = [write(tmp_path, "a", a), write(tmp_path, "b", b)]
+    assert ev.cli(["compare", *paths]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"b.json: {key}: {other!r}, but " in err and "not the same protocol" in err
+
+
 def test_rate_interval_of_one_result():
     """The rate of a result's complete scenes, with an interval that brackets it and is empty
     when every scene is alike; a scene missing a gripper's record is left out."""
