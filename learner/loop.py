@@ -417,13 +417,14 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
             progress.add_reports(actor.run_episodes(1, eps))
             stats = learner.train(LEARNER_CHUNK_STEPS)
             weights = stats["weights"]
+            published += weights is not None
             while stats["ran"] > 0 and not stop["flag"]:
                 stats = learner.train(LEARNER_CHUNK_STEPS)
                 weights = stats["weights"] or weights
+                published += stats["weights"] is not None
             if weights is not None:
                 version, box = weights
                 actor.set_weights(version, box[0])
-                published += 1
             inserted = stats["inserted"]
             progress.tick(inserted, stats, eps)
             if time.time() - last_ckpt >= cfg.learner.checkpoint_minutes * 60:

@@ -3,6 +3,7 @@
 import copy
 import dataclasses
 import errno
+import json
 import os
 
 import numpy as np
@@ -560,6 +561,18 @@ def _episodes(run):
         draw = (m.gripper, m.gripper_scale, m.openings, m.seed)
         assert out.setdefault((m.actor_id, m.episode_id), draw) == draw, "one episode, one draw"
     return out
+
+
+def test_a_local_run_counts_every_weights_version_it_published(tmp_path):
+    """--actors 0 catches the learner up after each episode, several chunks in a row, each of which
+    may publish: the summary counts every version (as the Ray driver does), none twice."""
+    from learner.run import cli
+
+    run = tmp_path / "run"
+    assert cli(["--config", "tiny", "--run-dir", str(run), "--actors", "0", "--max-trials", "6", "--quiet",
+                "--set", "learner.min_replay=2", "--set", "learner.samples_per_insert=64"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["weights_published"] == summary["weights_version"] > 2, summary
 
 
 def test_a_resumed_run_draws_new_episodes_and_numbers_them_after_the_first_part(tmp_path):
