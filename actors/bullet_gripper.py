@@ -174,7 +174,7 @@ class BulletGripper:
                                         physicsClientId=client)
                 gear = p.createConstraint(self.body_id, self._joint[c.driver], self.body_id, j, p.JOINT_GEAR,
                                           [0, 0, 1], [0, 0, 0], [0, 0, 0], physicsClientId=client)
-                offset, ratio = c.offset * (self.scale if c.prismatic else 1.0), c.ratio(self.scale)
+                offset, ratio = c.value(0.0, self.scale), c.ratio(self.scale)
                 # PyBullet's gear holds q_driver + ratio * q_joint = target
                 p.changeConstraint(gear, gearRatio=-1.0 / ratio, relativePositionTarget=-offset / ratio,
                                    maxForce=GEAR_FORCE_FACTOR * spec.coupling_force, erp=GEAR_ERP, physicsClientId=client)
@@ -278,7 +278,7 @@ class BulletGripper:
         return {c[2] for c in p.getContactPoints(bodyA=self.body_id, physicsClientId=self.client) if c[2] != self.body_id}
 
     def coupling_error(self) -> float:
-        """Largest |q_joint - (multiplier * q_driver + offset)| (m or rad) over the ``mimic`` and
+        """Largest |q_joint - Coupling.value(q_driver, scale)| (m or rad) over the ``mimic`` and
         ``measured`` couplings now (0 without them): how far the linkage is from its kinematics."""
         q = self.joint_state()
         err = 0.0

@@ -76,6 +76,7 @@ from actors.simulation import SCENE_KINDS, Simulation, SimulationError
 from common.calibration import Calibration, calibration_from_result, file_sha256
 from common.checkpoint import CheckpointError, inference_config, read_checkpoint, resolve_checkpoint
 from common.config import Config, from_dict, load_config, set_flags, to_dict
+from common.files import finite_json
 from common.gripper import SPLITS as GRIPPER_SPLITS
 from common.gripper import GripperSpec, check_scale, get_gripper, list_grippers
 from common.gripper_encoding import GripperEncoder, gripper_key
@@ -826,7 +827,7 @@ def _write_atomic(path: str | Path, text: str) -> None:
 
 def write_json(path: str | Path, record) -> None:
     """``record`` as the project's JSON files are written (indent 1, a final newline), atomically."""
-    _write_atomic(path, json.dumps(record, indent=1) + "\n")
+    _write_atomic(path, json.dumps(finite_json(record), indent=1) + "\n")
 
 
 def check_output_path(flag: str, path: str | None, inputs=()) -> None:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.files import atomic_write_text
+from common.files import atomic_write_text, finite_json
 
 CHECK_OPENINGS = 11
 """Openings visited from 0 to 1 by the check."""
@@ -60,7 +60,7 @@ class CheckReport:
     apertures_sim: list[float] = field(default_factory=list)
     """Aperture (m) measured in PyBullet after driving to each checked opening."""
     coupling_error: float = 0.0
-    """Largest |q_coupled - (multiplier * q_driver + offset)| seen in PyBullet in free air (m or rad)."""
+    """Largest |q_coupled - Coupling.value(q_driver, scale)| seen in PyBullet in free air (m or rad)."""
     coupling_error_held: float = 0.0
     """The same, the largest when closing on a lift-test object ended: how far the load bends the
     linkage away from its kinematics (reported, not a pass criterion)."""
@@ -202,7 +202,7 @@ def _cmd_list(args) -> int:
 
     rows = [_summary(s) for s in list_grippers(split=args.split, family=args.family)]
     if args.json:
-        print(json.dumps(rows, indent=1))
+        print(json.dumps(finite_json(rows), indent=1))
         return 0
     print(f"{'name':22s} {'family':9s} {'split':5s} {'drive':>5s} {'coupled':>7s} {'aperture (m)':>15s}  description")
     for r in rows:
@@ -236,7 +236,7 @@ def _cmd_check(args) -> int:
     for reason in r.reasons:
         print(f"  reason: {reason}")
     if args.json:
-        atomic_write_text(Path(args.json), json.dumps(asdict(r), indent=1))
+        atomic_write_text(Path(args.json), json.dumps(finite_json(asdict(r)), indent=1))
     return 0 if r.passed else 1
 
 
@@ -271,9 +271,9 @@ def _cmd_generate(args) -> int:
         "per_family": per_family,
         "seconds": round(time.perf_counter() - t0, 1),
     }
-    print(json.dumps(summary))
+    print(json.dumps(finite_json(summary)))
     if args.json:
-        atomic_write_text(Path(args.json), json.dumps({"summary": summary, "grippers": results}, indent=1))
+        atomic_write_text(Path(args.json), json.dumps(finite_json({"summary": summary, "grippers": results}), indent=1))
     if args.pool_yaml:
         atomic_write_text(Path(args.pool_yaml), _pool_yaml(results))
     return 0

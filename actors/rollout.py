@@ -28,6 +28,7 @@ from actors.grasp import TrialResult, run_episode
 from actors.policies import Policy, make_policy
 from actors.simulation import SCENE_KINDS, Simulation, SimulationError
 from common.config import Config, load_config, set_flags
+from common.files import finite_json
 from common.gripper import check_scale, get_gripper
 
 
@@ -201,5 +202,5 @@ def cli(argv: list[str]) -> int:
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(summary, indent=1) + "\n")
+        out.write_text(json.dumps(finite_json(summary), indent=1) + "\n")
     return 0

@@ -58,7 +58,7 @@ COUPLING_MODES = ("mimic", "measured", "target")
 """How a coupled joint follows its driver in PyBullet. mimic: a JOINT_GEAR constraint (rigid,
 two-way linkage); measured: a per-step position target at the driver's measured position;
 target: a per-step position target at the driver's commanded target (adaptive fingers)."""
-FORMAT_VERSION = "8"
+FORMAT_VERSION = "9"
 """Bumped whenever the processed-URDF layout changes, so cached files are rebuilt."""
 CACHE_ENV = "ADAGRASP_CACHE"
 """Environment variable that overrides the user cache directory."""
@@ -333,6 +333,17 @@ def _moving_couplings(couplings: list[Coupling], drive_names: set[str]) -> tuple
         moving |= more
 
 
+def _on_cycle(joint: str, follows: dict[str, str]) -> bool:
+    """Whether following drivers (``follows``: joint -> driver) from ``joint`` comes back to it."""
+    seen, j = set(), follows.get(joint)
+    while j is not None and j not in seen:
+        if j == joint:
+            return True
+        seen.add(j)
+        j = follows.get(j)
+    return False
+
+
 def _descendant_links(robot_joints: dict[str, dict], joints: set[str]) -> tuple[str, ...]:
     children: dict[str, list[str]] = {}
     for info in robot_joints.values():
@@ -420,7 +431,7 @@ def load_spec(path: str | Path) -> GripperSpec:
 
     couplings: list[Coupling] = []
     for jn, driver, mult, off in mimics:
-        if jn in drive_names:
+        if jn in drive_names or jn not in movable:  # a driven or fixed joint follows nothing
             continue
         couplings.append(Coupling(jn, driver, mult, off, "mimic", table[jn]["type"] == "prismatic", True,
                                   table[driver]["type"] == "prismatic"))
@@ -458,25 +469,29 @@ def load_spec(path: str | Path) -> GripperSpec:
         if not c.from_mimic:
             raise GripperSpecError(f"{path}: couplings[{declared[c.joint]}].driver: joint {c.driver!r} is neither "
                                    "driven nor coupled to a drive joint, so it is frozen")
+    moving = drive_names | {c.joint for c in couplings}
+    for jn in hold:
+        if jn in moving:
+            raise GripperSpecError(f"{path}: hold_joints.{jn}: the joint is driven or coupled to a drive joint, "
+                                   "so it moves; only frozen joints are held")
     # a <mimic> of a frozen joint is frozen too, where its <mimic> puts it (hold_joints may say
-    # otherwise); a <mimic> cycle that no drive joint enters stays at 0
+    # otherwise); the joints of a <mimic> cycle that no drive joint enters stay at 0
     pending = [c for c in frozen if c.joint not in held]
     while pending:
-        waiting = {c.joint for c in pending}
-        ready = [c for c in pending if c.driver not in waiting]
-        if not ready:
-            break
+        follows = {c.joint: c.driver for c in pending}
+        ready = [c for c in pending if c.driver not in follows]
         for c in ready:
             held[c.joint] = c.value(held.get(c.driver, 0.0), 1.0)
-        pending = [c for c in pending if c not in ready]
+        if not ready:  # every driver waits: each chain ends in a cycle
+            held.update({j: 0.0 for j in follows if _on_cycle(j, follows)})
+        pending = [c for c in pending if c.joint not in held]
 
-    keep = drive_names | {c.joint for c in couplings}
     base_mass = _scalar(data, "base_mass", path, 1.0) if "base_mass" in data else None
     inertia = data.get("inertia", "file")
     if inertia not in ("file", "geometry"):
         raise GripperSpecError(f"{path}: inertia: expected file or geometry, got {inertia!r}")
-    urdf = _processed_urdf(path, text, source, cut_link, keep, held, base_mass, inertia)
-    finger_links = _descendant_links(table, keep)
+    urdf = _processed_urdf(path, text, source, cut_link, moving, held, base_mass, inertia)
+    finger_links = _descendant_links(table, moving)
 
     friction = _scalar(data, "friction", path, 1.0)
     force = _scalar(data, "force", path, 20.0)

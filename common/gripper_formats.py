@@ -392,7 +392,9 @@ def inertia_from_collision(robot: ET.Element) -> list[str]:
 
 
 def scale_robot(robot: ET.Element, s: float) -> ET.Element:
-    """The model scaled by ``s`` about the root frame: geometry, frames, prismatic limits, inertia."""
+    """The model scaled by ``s`` about the root frame: geometry, frames, prismatic limits, inertia.
+    ``<mimic>`` elements are left as they are (processed URDFs have none; couplings scale through
+    ``Coupling.value``)."""
     out = copy.deepcopy(robot)
     if s == 1.0:
         return out
@@ -420,9 +422,6 @@ def scale_robot(robot: ET.Element, s: float) -> ET.Element:
                 for key in ("lower", "upper", "velocity"):
                     if lim.get(key) is not None:
                         lim.set(key, f"{_number(lim.get(key), f'{where}: limit {key}') * s:.9g}")
-            m = j.find("mimic")
-            if m is not None and m.get("offset") is not None:
-                m.set("offset", f"{_number(m.get('offset'), f'{where}: mimic offset') * s:.9g}")
     return out
 
 

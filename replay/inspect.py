@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.files import finite_json
 from replay.schema import ReplayError, ReplayInputError
 from replay.shard import ReplayShard, StoredTrial, disk_usage, find_shards
 
@@ -355,7 +356,7 @@ def _run(args: argparse.Namespace) -> int:
             summary = summarize(args.path)
             print(format_summary(summary))
             if args.json_out:
-                Path(args.json_out).write_text(json.dumps(summary, indent=2))
+                Path(args.json_out).write_text(json.dumps(finite_json(summary), indent=2))
         elif args.command == "show":
             if Path(args.out).suffix.lower() != ".png":
                 raise ReplayInputError(f"--out {args.out}: expected a .png file")

@@ -480,7 +480,7 @@ def _slider(name: str, y: float, z: float, axis: str, limits: tuple[float, float
 def test_held_joints_and_their_mimic_followers_freeze_where_the_file_puts_them(tmp_path):
     """A joint frozen by ``hold_joints`` sits at its value; a ``<mimic>`` follower of it (and a
     follower of that follower) is frozen where its ``<mimic>`` puts it, not at 0, and a joint that
-    is neither driven, coupled nor held sits at 0."""
+    is neither driven, coupled nor held sits at 0. A ``<mimic>`` on a fixed joint couples nothing."""
     urdf = tmp_path / "held.urdf"
     urdf.write_text(
         "<robot name='held'><link name='palm'><collision><geometry><box size='0.1 0.1 0.02'/></geometry></collision></link>"
@@ -489,6 +489,11 @@ def test_held_joints_and_their_mimic_followers_freeze_where_the_file_puts_them(t
         + _slider("d", 0.0, 0.03, "1 0 0", (-0.05, 0.05), "<mimic joint='b' multiplier='1' offset='0.001'/>")
         + _slider("e", 0.0, 0.06, "1 0 0", (-0.05, 0.05))
         + _slider("c", 0.0, -0.03, "0 1 0", (0.0, 0.04))
+        + _slider("p", 0.04, 0.03, "1 0 0", (-0.05, 0.05), "<mimic joint='q' multiplier='1' offset='0.002'/>")
+        + _slider("q", -0.04, 0.03, "1 0 0", (-0.05, 0.05), "<mimic joint='p' multiplier='1' offset='0.002'/>")
+        + _slider("x", 0.04, 0.06, "1 0 0", (-0.05, 0.05), "<mimic joint='p' multiplier='1' offset='0.01'/>")
+        + "<link name='f_link'/><joint name='f' type='fixed'><parent link='palm'/><child link='f_link'/>"
+          "<mimic joint='c' multiplier='1' offset='0'/></joint>"
         + "</robot>"
     )
     data = _base(tmp_path)
@@ -498,9 +503,18 @@ def test_held_joints_and_their_mimic_followers_freeze_where_the_file_puts_them(t
     assert spec.joint_names == ("c",)
     poses = GripperModel(spec, 1.0, frame="base").link_poses(0.5)
     expected = {"a_link": (0.01, 0.03, 0.0), "b_link": (0.025, -0.03, 0.0), "d_link": (0.026, 0.0, 0.03),
-                "e_link": (0.0, 0.0, 0.06), "c_link": (0.0, 0.02, -0.03)}
+                "e_link": (0.0, 0.0, 0.06), "c_link": (0.0, 0.02, -0.03),
+                # a <mimic> cycle no drive enters stays at 0; a follower of it where its <mimic> says
+                "p_link": (0.0, 0.04, 0.03), "q_link": (0.0, -0.04, 0.03), "x_link": (0.01, 0.04, 0.06)}
     for link, xyz in expected.items():
         np.testing.assert_allclose(poses[link][:3, 3], xyz, atol=1e-9, err_msg=link)
+    # a drive joint is not held
+    data["hold_joints"] = {"a": 0.01, "c": 0.02}
+    f = _write(tmp_path, data, "held-drive.yaml")
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "hold_joints.c: the joint is driven")
+    data["hold_joints"] = {"a": 0.01}
     # a declared coupling must follow a joint that moves
     data["couplings"] = [{"joint": "e", "driver": "a", "mode": "target"}]
     f = _write(tmp_path, data, "frozen-driver.yaml")
