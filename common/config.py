@@ -451,7 +451,13 @@ _YAML12_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?
 """A YAML 1.2 core-schema number, finite (no .inf / .nan)."""
 
 
+_NAMED: tuple[str, ...] = ("sim.objects", "grippers.train_grippers", "run.run_dir")
+"""Text keys that must name something (an object set, grippers, a folder): not empty."""
+
+
 def _check_value(name: str, value: Any, source: str) -> None:
+    if name in _NAMED and value == "":
+        raise ConfigError(f"{source}: {name}: empty; it must name something")
     if name in _CHOICES and value not in _CHOICES[name]:
         raise ConfigError(f"{source}: {name}: expected one of {list(_CHOICES[name])}, got {value!r}")
     if name in _RANGES:

@@ -103,6 +103,9 @@ def test_an_empty_value_of_a_text_field_is_the_empty_string(tmp_path):
     assert load_config(f).replay.seed_from == ""
     with pytest.raises(ConfigError, match=r"^--set: model\.variant: .*''"):
         load_config("default", overrides=["model.variant="])
+    for key in ("sim.objects", "grippers.train_grippers", "run.run_dir"):
+        with pytest.raises(ConfigError, match=rf"^--set: {key}: empty; it must name something$"):
+            load_config("default", overrides=[f"{key}="])
 
 
 def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
