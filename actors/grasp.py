@@ -38,8 +38,9 @@ import pybullet
 
 from actors.bullet_gripper import BulletGripper
 from actors.simulation import Simulation
-from common.geometry import Transform, cell_to_world, rotation_angle
+from common.geometry import Transform
 from common.observation import Observation
+from common.policy import grasp_pose as cell_grasp_pose
 
 _CLOSE_STILL_STEPS = 6
 """Closing ends once no finger joint moved more than its threshold over this many steps."""
@@ -128,13 +129,16 @@ class TrialResult:
     episode is added to its first attempt)."""
 
 
-def grasp_pose(sim: Simulation, action, openings, heightmap: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Grasp TCP position (3,) float64 world metres, yaw (rad) and opening of ``action``.
+def grasp_pose(
+    sim: Simulation, action, openings, heightmap: np.ndarray, reach: float | None = None
+) -> tuple[np.ndarray, float, float]:
+    """Grasp TCP position (3,) float64 world metres, yaw (rad) and opening of ``action`` after
+    checking it (:func:`common.policy.grasp_pose`, which the planner and the policy report too:
+    the centre clipped to the fence square, z raised for ``reach`` when given).
 
-    ``heightmap``: (X, Y) float32 metres above the table (the observation's). The grasp centre is
-    clipped to the fence square (the paper clips to its workspace bounds).
+    ``heightmap``: (X, Y) float32 metres above the table (the observation's).
     """
-    grid, cfg = sim.grid, sim.cfg.sim
+    grid = sim.grid
     i, j, k, s = (int(a) for a in action)
     shape = grid.shape[:2]
     assert heightmap.shape == shape and heightmap.dtype == np.float32, (heightmap.shape, heightmap.dtype)
@@ -144,11 +148,8 @@ def grasp_pose(sim: Simulation, action, openings, heightmap: np.ndarray) -> tupl
         raise ValueError(f"action: rotation {k} outside [0, {sim.cfg.model.rotations})")
     if not 0 <= s < len(openings):
         raise ValueError(f"action: opening index {s} outside the {len(openings)} openings")
-    xy = cell_to_world(grid, i, j)
-    lim = cfg.fence_half_extent
-    xy = np.clip(xy, sim.centre[:2] - lim, sim.centre[:2] + lim)
-    z = max(float(heightmap[i, j]) - cfg.grasp_depth, grid.z_range[0])
-    return np.array([xy[0], xy[1], z]), rotation_angle(k, sim.cfg.model.rotations), float(openings[s])
+    position, yaw = cell_grasp_pose(sim.cfg, heightmap, i, j, k, reach)
+    return position, yaw, float(openings[s])
 
 
 def gripper_reach(sim: Simulation, gripper: BulletGripper, opening: float) -> float:
@@ -203,12 +204,12 @@ def execute_grasp(sim: Simulation, gripper: BulletGripper, action, openings, hei
     was lifted and park the gripper. ``openings``: the episode's candidate openings in [0, 1]."""
     cfg = sim.cfg.sim
     dt = cfg.time_step
-    position, yaw, opening = grasp_pose(sim, action, openings, heightmap)
+    _, _, opening = grasp_pose(sim, action, openings, heightmap)
+    reach = gripper_reach(sim, gripper, opening)
+    position, yaw, _ = grasp_pose(sim, action, openings, heightmap, reach)
     objects = set(sim.objects)
     steps = 0
 
-    reach = gripper_reach(sim, gripper, opening)
-    position[2] = max(position[2], sim.grid.z_range[0] + reach + cfg.table_clearance)
     start_z = max(sim.scene_top(), position[2] - reach) + reach + cfg.approach_clearance
     rot = Transform.from_yaw(yaw).rotation
     gripper.reset(Transform(rot, np.array([position[0], position[1], start_z])), opening)

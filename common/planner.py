@@ -29,7 +29,7 @@ from common.calibration import Calibration, CalibrationError
 from common.camera import Intrinsics
 from common.config import Config
 from common.geometry import Transform
-from common.gripper import GripperSpec, get_gripper
+from common.gripper import GripperModel, GripperSpec, get_gripper
 from common.gripper_encoding import GripperEncoder, gripper_key
 from common.network import AdaGraspNet
 from common.observation import Observation
@@ -46,7 +46,9 @@ class PlannedGrasp:
     """One ranked grasp in the world frame."""
 
     position: np.ndarray
-    """(3,) float64 TCP position, world frame, metres (z = surface height - sim.grasp_depth, >= table)."""
+    """(3,) float64 TCP position, world frame, metres: the pose the simulator executes for the action
+    (:func:`common.policy.grasp_pose`: x, y clipped to the fence square; z = surface height -
+    sim.grasp_depth, raised so that the closing fingertips stay sim.table_clearance above the table)."""
     yaw: float
     """Gripper yaw about +z, radians: its closing axis (TCP x) turned from world x towards y."""
     opening: float
@@ -96,6 +98,17 @@ class GraspPlanner:
         self.last_probs: np.ndarray | None = None
         """(G, S, R, X, Y) float32 scores of the last :meth:`plan` call (float64 and calibrated if it
         was given a calibration)."""
+        self._reach: dict[tuple, float] = {}
+        """Metres the fingers sweep below the TCP, per (gripper urdf, scale, opening)."""
+
+    def reach(self, spec: GripperSpec, scale: float, opening: float) -> float:
+        """How far (m) the fingers of ``spec`` at ``scale`` reach below the TCP at their lowest while
+        closing from ``opening`` (:meth:`GripperModel.sweep_depth`, as the simulator raises its
+        grasps by), cached."""
+        key = (str(spec.urdf), spec.tcp_position, float(scale), round(float(opening), 6))
+        if key not in self._reach:
+            self._reach[key] = GripperModel(spec, scale).sweep_depth(max_opening=key[-1])
+        return self._reach[key]
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu") -> "GraspPlanner":
@@ -199,7 +212,8 @@ class GraspPlanner:
             if masked[idx] < 0 or len(out) >= top_k:
                 break
             g, s, k, i, j = (int(v) for v in np.unravel_index(int(idx), probs.shape))
-            position, yaw = grasp_pose(self.cfg, obs.heightmap, i, j, k)
+            spec, scale = specs[g]
+            position, yaw = grasp_pose(self.cfg, obs.heightmap, i, j, k, self.reach(spec, scale, openings[s]))
             if min_separation > 0 and any(
                 p.gripper == g and np.linalg.norm(p.position[:2] - position[:2]) < min_separation for p in out
             ):

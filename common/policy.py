@@ -59,7 +59,8 @@ class GraspChoice:
     action: tuple[int, int, int, int, int]
     """(i, j, k, s, g): cell along x and y, rotation index, opening index, gripper index."""
     position: np.ndarray
-    """(3,) float64 TCP position in the world frame, metres."""
+    """(3,) float64 TCP position in the world frame, metres (:func:`grasp_pose` without the reach:
+    the simulator raises z further when the closing fingers would come nearer the table)."""
     yaw: float
     """Gripper yaw theta_k about +z, radians."""
     opening: float
@@ -88,14 +89,25 @@ def valid_cells(obs: Observation, cfg: Config, region: np.ndarray | None = None)
     return mask if mask.any() else region.copy()
 
 
-def grasp_pose(cfg: Config, heightmap: np.ndarray, i: int, j: int, k: int) -> tuple[np.ndarray, float]:
-    """TCP position (3,) float64 world metres and yaw (rad) of a grasp at cell (i, j), rotation k.
+def grasp_pose(
+    cfg: Config, heightmap: np.ndarray, i: int, j: int, k: int, reach: float | None = None
+) -> tuple[np.ndarray, float]:
+    """TCP position (3,) float64 world metres and yaw (rad) of a grasp at cell (i, j), rotation k:
+    the pose the simulator executes. The centre is clipped to the fence square
+    (``sim.fence_half_extent``; the paper clips to its workspace bounds); z is the cell's surface
+    ``sim.grasp_depth`` deep, not below the table, and, given ``reach`` (m the fingers sweep below
+    the TCP while closing from the opening, :meth:`GripperModel.sweep_depth`), high enough that
+    the fingertips stay ``sim.table_clearance`` above the table.
 
     heightmap: (X, Y) float32 metres above the table (the observation's).
     """
     grid = cfg.scene_grid
-    xy = cell_to_world(grid, i, j)
+    centre = np.array([np.mean(grid.x_range), np.mean(grid.y_range)])
+    lim = cfg.sim.fence_half_extent
+    xy = np.clip(cell_to_world(grid, i, j), centre - lim, centre + lim)
     z = max(float(heightmap[i, j]) - cfg.sim.grasp_depth, grid.z_range[0])
+    if reach is not None:
+        z = max(z, grid.z_range[0] + reach + cfg.sim.table_clearance)
     return np.array([xy[0], xy[1], z]), rotation_angle(int(k), cfg.model.rotations)
 
 

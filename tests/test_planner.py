@@ -74,7 +74,9 @@ def test_plan_ranks_valid_grasps_from_analytic_depth():
     for g in grasps:
         i, j, k, s, gi = g.action
         assert mask[i, j] and g.gripper == gi and g.gripper_name == GRIPPER and g.opening == openings[s]
-        position, yaw = grasp_pose(cfg, obs.heightmap, i, j, k)
+        reach = planner.reach(get_gripper(GRIPPER), (1.0, 1.2)[gi], openings[s])
+        assert 0.005 < reach < 0.1
+        position, yaw = grasp_pose(cfg, obs.heightmap, i, j, k, reach)
         np.testing.assert_allclose(g.position, position)
         assert g.yaw == yaw and g.score == pytest.approx(float(probs[gi, s, k, i, j]))
     # the same scores as the network on the fused observation
@@ -138,8 +140,9 @@ def test_planned_grasp_executes_in_the_simulator(tmp_path):
         best = grasps[0]
         i, j, k, s, _ = best.action
         outcome = execute_grasp(sim, gripper, (i, j, k, s), openings, obs.heightmap)
-    lim = default_cfg.sim.fence_half_extent
-    np.testing.assert_allclose(outcome.grasp_position[:2], np.clip(best.position[:2], -lim, lim), atol=1e-9)
+    # the planned pose is the executed one: clipped to the fence square, raised for the fingers' reach
+    np.testing.assert_allclose(outcome.grasp_position, best.position, atol=1e-12)
+    assert best.position[2] >= default_cfg.sim.table_clearance + planner.reach(spec, 1.0, 1.0) - 1e-12
     assert outcome.yaw == pytest.approx(best.yaw) and outcome.opening == best.opening
     assert outcome.steps > 0
     assert planner.encoder.encode(spec, 1.0, openings).shape == (1, 2, 32, 32, 16)

@@ -140,6 +140,13 @@ def test_pose_clips_to_the_table():
     hm[3, 4] = 0.02
     position, yaw = grasp_pose(cfg, hm, 3, 4, 2)
     assert position[2] == 0.0 and yaw == pytest.approx(math.pi / 2)
+    # fingers that sweep 3 cm below the TCP while closing keep sim.table_clearance above the table
+    raised, _ = grasp_pose(cfg, hm, 3, 4, 2, reach=0.03)
+    assert raised[2] == pytest.approx(0.03 + cfg.sim.table_clearance) and np.array_equal(raised[:2], position[:2])
+    # a cell beyond the fence square grasps at its edge
+    cfg.sim.fence_half_extent = 0.02
+    far, _ = grasp_pose(cfg, hm, 0, 0, 0)
+    np.testing.assert_allclose(far[:2], [-0.02, -0.02])
 
 
 def test_bad_policy_input_is_one_line():
