@@ -88,7 +88,9 @@ class GraspActor:
         self.rng = np.random.default_rng(seq)
         self.sim = Simulation(cfg, seed=int(seq.generate_state(1)[0]))
         self.replay = replay
-        self.encoder = GripperEncoder(cfg.gripper_grid)
+        # each episode draws its scale and openings from continuous ranges, so an encoding is never
+        # asked for twice: kept in memory only (on disk they grew by 6 never-read files an episode)
+        self.encoder = GripperEncoder(cfg.gripper_grid, disk=False)
         self.model = build_model(cfg).eval()
         self.version = -1
         self.episode = int(first_episode)

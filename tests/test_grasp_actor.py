@@ -20,7 +20,8 @@ class _Recorder:
         pass
 
 
-def test_stored_trial_is_the_attempt_that_ran(monkeypatch):
+def test_stored_trial_is_the_attempt_that_ran(monkeypatch, tmp_path):
+    monkeypatch.setenv("ADAGRASP_CACHE", str(tmp_path / "cache"))
     cfg = load_config("tiny", overrides=["sim.scene=multi", "sim.multi_max_attempts=2"])
     ran = []
     real = grasp_actor.run_episode
@@ -43,3 +44,5 @@ def test_stored_trial_is_the_attempt_that_ran(monkeypatch):
         assert trial.score == result.score and trial.meta.step == result.step
         assert trial.observation is result.observation, "the observation the action was chosen on"
         assert result.outcome.opening == trial.meta.openings[trial.action[3]]
+    # encodings of a random scale and random openings are never read again: none is written
+    assert not list((tmp_path / "cache").rglob("*.npy"))
