@@ -451,8 +451,9 @@ _YAML12_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?
 """A YAML 1.2 core-schema number, finite (no .inf / .nan)."""
 
 
-_NAMED: tuple[str, ...] = ("sim.objects", "grippers.train_grippers", "run.run_dir")
-"""Text keys that must name something (an object set, grippers, a folder): not empty."""
+_NAMED: tuple[str, ...] = ("sim.objects", "grippers.train_grippers")
+"""Text keys that must name something (an object set, grippers): not empty. (An empty
+``run.run_dir`` is refused where a new run starts: it plays no part in a checkpoint's use.)"""
 
 
 def _check_value(name: str, value: Any, source: str) -> None:

@@ -461,6 +461,8 @@ def load_spec(path: str | Path) -> GripperSpec:
     for jn, v in hold.items():
         if jn not in table:
             raise GripperSpecError(f"{path}: hold_joints.{jn}: joint does not exist in {source.name}")
+        if jn not in movable:
+            raise GripperSpecError(f"{path}: hold_joints.{jn}: the joint is {table[jn]['type']}; only movable joints are held")
         _num(hold, jn, f"{path}: hold_joints")
     held = {k: float(v) for k, v in hold.items()}
 

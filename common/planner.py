@@ -8,7 +8,10 @@ and cell, and the best ``top_k`` valid grasps come back in the world frame.
 
 The world frame is the one the model was trained in: z up, table top at z = 0, the workspace
 ``scene_grid.x_range`` x ``y_range`` x ``z_range`` (centred on the origin by default); the camera
-poses must be expressed in it.
+poses must be expressed in it. A grasp's position is the pose the simulator executes for its cell:
+clipped to the square of half-size ``sim.fence_half_extent`` (a cell near the edge of the valid
+square is grasped at the fence, as in training) and raised so the closing fingers stay
+``sim.table_clearance`` above the table.
 
 Usage::
 
@@ -98,16 +101,19 @@ class GraspPlanner:
         self.last_probs: np.ndarray | None = None
         """(G, S, R, X, Y) float32 scores of the last :meth:`plan` call (float64 and calibrated if it
         was given a calibration)."""
-        self._reach: dict[tuple, float] = {}
-        """Metres the fingers sweep below the TCP, per (gripper urdf, scale, opening)."""
+        self._models: dict[tuple[GripperSpec, float], GripperModel] = {}
+        self._reach: dict[tuple[GripperSpec, float, float], float] = {}
+        """Metres the fingers sweep below the TCP, per (gripper spec, scale, opening)."""
 
     def reach(self, spec: GripperSpec, scale: float, opening: float) -> float:
         """How far (m) the fingers of ``spec`` at ``scale`` reach below the TCP at their lowest while
         closing from ``opening`` (:meth:`GripperModel.sweep_depth`, as the simulator raises its
-        grasps by), cached."""
-        key = (str(spec.urdf), spec.tcp_position, float(scale), round(float(opening), 6))
+        grasps by), cached per spec (every field of it), scale and opening."""
+        key = (spec, float(scale), round(float(opening), 6))
         if key not in self._reach:
-            self._reach[key] = GripperModel(spec, scale).sweep_depth(max_opening=key[-1])
+            if key[:2] not in self._models:
+                self._models[key[:2]] = GripperModel(spec, scale)
+            self._reach[key] = self._models[key[:2]].sweep_depth(max_opening=key[2])
         return self._reach[key]
 
     @classmethod

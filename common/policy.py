@@ -19,9 +19,11 @@ whole square is valid (an empty scene still gets an action, as the random policy
 
 Exploration (epsilon-greedy as in the paper): with probability ``epsilon`` the action is drawn
 with probability proportional to its predicted success probability over the valid actions,
-otherwise it is the valid argmax. The pose of an action: TCP (x, y) at the cell centre
-(``common.geometry.cell_to_world``), z = heightmap at the cell minus ``sim.grasp_depth``, clipped
-to the table; yaw theta_k.
+otherwise it is the valid argmax. The pose of an action (:func:`grasp_pose`): TCP (x, y) at the
+cell centre (``common.geometry.cell_to_world``) clipped to the square of half-size
+``sim.fence_half_extent``, z = heightmap at the cell minus ``sim.grasp_depth``, clipped to the
+table and, where the gripper is known (the simulator, the planner), raised for its fingers' reach;
+yaw theta_k.
 
 Call loop::
 

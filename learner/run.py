@@ -75,6 +75,9 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             )
     else:
         cfg = load_config(args.config or "default", overrides=args.set)
+        if not args.run_dir and not cfg.run.run_dir:
+            raise ConfigError(f"{config_path(args.config or 'default')}{' with --set' if args.set else ''}: "
+                              "run.run_dir: empty; name the folder new runs go in, or pass --run-dir")
         run_dir = Path(args.run_dir) if args.run_dir else Path(cfg.run.run_dir) / time.strftime("%Y%m%d-%H%M%S")
         if (run_dir / "config.yaml").exists():
             raise ConfigError(f"{run_dir}: already holds a run; pass --resume to continue it")

@@ -93,7 +93,7 @@ def test_set_mends_a_combination_the_file_got_wrong_and_errors_name_the_values_s
         load_config("default", overrides=["learner={min_replay: 0}"])
 
 
-def test_an_empty_value_of_a_text_field_is_the_empty_string(tmp_path):
+def test_an_empty_value_of_a_text_field_is_the_empty_string(tmp_path, capsys):
     """``--set learner.init_weights=`` and an empty YAML value clear a path field (the empty string
     is its "none"); a text field that must name something still refuses it in one line."""
     cfg = load_config("default", overrides=["learner.init_weights=model:x", "learner.init_weights="])
@@ -103,9 +103,15 @@ def test_an_empty_value_of_a_text_field_is_the_empty_string(tmp_path):
     assert load_config(f).replay.seed_from == ""
     with pytest.raises(ConfigError, match=r"^--set: model\.variant: .*''"):
         load_config("default", overrides=["model.variant="])
-    for key in ("sim.objects", "grippers.train_grippers", "run.run_dir"):
+    for key in ("sim.objects", "grippers.train_grippers"):
         with pytest.raises(ConfigError, match=rf"^--set: {key}: empty; it must name something$"):
             load_config("default", overrides=[f"{key}="])
+    # an empty run folder loads (a checkpoint of such a run stays usable); a new run refuses it
+    assert load_config("default", overrides=["run.run_dir="]).run.run_dir == ""
+    from learner.run import cli
+
+    assert cli(["--config", "tiny", "--set", "run.run_dir=", "--actors", "0", "--max-trials", "1"]) == 2
+    assert "run.run_dir: empty; name the folder new runs go in, or pass --run-dir" in capsys.readouterr().err
 
 
 def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):

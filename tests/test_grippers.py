@@ -514,6 +514,11 @@ def test_held_joints_and_their_mimic_followers_freeze_where_the_file_puts_them(t
     with pytest.raises(GripperSpecError) as e:
         load_spec(f)
     _one_line(e, str(f), "hold_joints.c: the joint is driven")
+    data["hold_joints"] = {"a": 0.01, "f": 0.02}
+    f = _write(tmp_path, data, "held-fixed.yaml")
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "hold_joints.f: the joint is fixed")
     data["hold_joints"] = {"a": 0.01}
     # a declared coupling must follow a joint that moves
     data["couplings"] = [{"joint": "e", "driver": "a", "mode": "target"}]

@@ -97,6 +97,20 @@ def test_plan_ranks_valid_grasps_from_analytic_depth():
             assert np.linalg.norm(spread[a].position[:2] - spread[b].position[:2]) >= 0.02
 
 
+def test_reach_is_cached_per_spec_not_per_file():
+    """Two specs of one processed URDF with other TCP axes reach differently; the cache keeps both."""
+    import dataclasses
+
+    cfg = load_config("default", SMALL)
+    planner = planner_for(cfg)
+    spec = get_gripper(GRIPPER)
+    tilted = dataclasses.replace(spec, approach_axis=(0.0, 0.6, -0.8))
+    assert tilted.urdf == spec.urdf
+    first = planner.reach(spec, 1.0, 1.0)
+    assert planner.reach(tilted, 1.0, 1.0) != pytest.approx(first, abs=1e-4)
+    assert planner.reach(spec, 1.0, 1.0) == first
+
+
 def test_bad_planner_input_is_one_line():
     cfg = load_config("default", SMALL)
     planner = planner_for(cfg)
