@@ -51,6 +51,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     """Config (from the run dir when resuming, limits in cfg.run) and run directory."""
+    config_file = Path(args.run_dir or ".") / "config.yaml" if args.resume else config_path(args.config or "default")
+    source = f"{config_file}{' with --set' if args.set else ''}"  # where the values came from, in errors
     if args.resume:
         if not args.run_dir:
             raise ConfigError("--resume: needs --run-dir of the run to continue")
@@ -76,8 +78,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
     else:
         cfg = load_config(args.config or "default", overrides=args.set)
         if not args.run_dir and not cfg.run.run_dir:
-            raise ConfigError(f"{config_path(args.config or 'default')}{' with --set' if args.set else ''}: "
-                              "run.run_dir: empty; name the folder new runs go in, or pass --run-dir")
+            raise ConfigError(f"{source}: run.run_dir: empty; name the folder new runs go in, or pass --run-dir")
         run_dir = Path(args.run_dir) if args.run_dir else Path(cfg.run.run_dir) / time.strftime("%Y%m%d-%H%M%S")
         if (run_dir / "config.yaml").exists():
             raise ConfigError(f"{run_dir}: already holds a run; pass --resume to continue it")
@@ -112,8 +113,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         if not cfg.learner.init_weights.startswith(SHIPPED_PREFIX):
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
         initial_weights(cfg)
-    check_names(cfg, f"{run_dir / 'config.yaml' if args.resume else config_path(args.config or 'default')}"
-                     + (" with --set" if args.set else ""))
+    check_names(cfg, source)
     new_dir = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.replay.seed_from and not args.resume:
