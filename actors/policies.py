@@ -28,7 +28,7 @@ import numpy as np
 from scipy import ndimage
 
 from common.config import Config
-from common.geometry import cell_to_world, world_to_cell
+from common.geometry import cell_to_world, grid_centre, world_to_cell
 from common.observation import Observation
 
 POLICY_NAMES = ("random", "heuristic")
@@ -66,7 +66,7 @@ class RandomPolicy:
         grid = cfg.scene_grid
         self.shape = grid.shape[:2]
         self.rotations = cfg.model.rotations
-        centre = np.array([np.mean(grid.x_range), np.mean(grid.y_range)])
+        centre = grid_centre(grid)
         xy = cell_to_world(grid, *np.meshgrid(np.arange(self.shape[0]), np.arange(self.shape[1]), indexing="ij"))
         # (X, Y) bool: cells inside the action square
         self.region = np.all(np.abs(xy - centre) <= cfg.sim.action_half_extent, axis=-1)

@@ -48,7 +48,7 @@ from actors.bullet_gripper import BulletGripper
 from actors.objects import ObjectModel, load_object, object_set
 from common.camera import Intrinsics, depth_from_opengl_zbuffer, opengl_view_matrix, scene_cameras
 from common.config import Config, ConfigError
-from common.geometry import Transform
+from common.geometry import Transform, grid_centre
 from common.gripper import GripperSpec
 from common.observation import Observation
 from common.tsdf import ObservationFuser
@@ -144,7 +144,7 @@ class Simulation:
         self.gripper: BulletGripper | None = None
         self._gripper_key: tuple[str, float] | None = None
         self._object_sets: dict[str, list[ObjectModel]] = {}
-        self.centre = np.array([np.mean(self.grid.x_range), np.mean(self.grid.y_range), 0.0])
+        self.centre = np.append(grid_centre(self.grid), 0.0)
         self.cameras = scene_cameras(self.grid, cfg.sim)
         self._fuser = ObservationFuser(self.grid, self.cameras)
         self._render_args = [

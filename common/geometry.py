@@ -104,6 +104,12 @@ def rotation_angle(k: int, rotations: int) -> float:
     return 2.0 * np.pi * k / rotations
 
 
+def grid_centre(grid: SceneGridConfig) -> np.ndarray:
+    """(2,) float64 world (x, y) in metres of the scene grid's centre (the action and fence squares'
+    centre)."""
+    return np.array([np.mean(grid.x_range), np.mean(grid.y_range)])
+
+
 def cell_to_world(grid: SceneGridConfig, i, j) -> np.ndarray:
     """World (x, y) in metres of the centre of scene cell (i, j); returns (..., 2) float64.
 

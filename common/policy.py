@@ -42,7 +42,7 @@ import torch
 
 from common.calibration import apply_shifts
 from common.config import Config
-from common.geometry import cell_to_world, rotation_angle
+from common.geometry import cell_to_world, grid_centre, rotation_angle
 from common.network import AdaGraspNet
 from common.observation import Observation
 
@@ -78,7 +78,7 @@ def action_region(cfg: Config) -> np.ndarray:
     grid = cfg.scene_grid
     X, Y, _ = grid.shape
     xy = cell_to_world(grid, *np.meshgrid(np.arange(X), np.arange(Y), indexing="ij"))
-    centre = np.array([np.mean(grid.x_range), np.mean(grid.y_range)])
+    centre = grid_centre(grid)
     return np.all(np.abs(xy - centre) <= cfg.sim.action_half_extent + 1e-9, axis=-1)
 
 
@@ -104,7 +104,7 @@ def grasp_pose(
     heightmap: (X, Y) float32 metres above the table (the observation's).
     """
     grid = cfg.scene_grid
-    centre = np.array([np.mean(grid.x_range), np.mean(grid.y_range)])
+    centre = grid_centre(grid)
     lim = cfg.sim.fence_half_extent
     xy = np.clip(cell_to_world(grid, i, j), centre - lim, centre + lim)
     z = max(float(heightmap[i, j]) - cfg.sim.grasp_depth, grid.z_range[0])
