@@ -32,7 +32,7 @@ Call loop::
 
 from __future__ import annotations
 
-import hashlib
+import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,7 +41,6 @@ import numpy as np
 import pybullet as p
 
 from common.config import SimConfig
-from common.files import atomic_write_text
 from common.geometry import Transform
 from common.gripper import (
     GripperModel,
@@ -65,27 +64,20 @@ ARM_REACH = 10.0
 """Metres: limit of each prismatic arm joint either side of the world origin."""
 ARM_LINK_MASS = 0.05
 """Kilograms of each intermediate arm link (a small point-like inertia; no geometry)."""
-ARM_LAYOUT = "1"
-"""Bumped whenever the arm's URDF layout changes, so cached mounted URDFs are rebuilt."""
 _TILT_TOL = 1e-6
 """Largest |z_tcp . world z - 1| a TCP target may have: the arm only yaws."""
 
 
-def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> Path:
-    """Path of the scaled URDF (:func:`common.gripper.scaled_urdf`) with the virtual arm above
-    its base link: world -> arm_x -> arm_y -> arm_z -> arm_yaw -> fixed joint at ``T_tcp_base``
-    -> the gripper's base. Cached next to the scaled URDF, keyed by :data:`ARM_LAYOUT` and the
-    TCP offset."""
-    scaled = scaled_urdf(spec, scale, visual_from_collision)
+def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> str:
+    """URDF text of the scaled gripper (:func:`common.gripper.scaled_urdf`) with the virtual arm
+    above its base link: world -> arm_x -> arm_y -> arm_z -> arm_yaw -> fixed joint at
+    ``T_tcp_base`` -> the gripper's base. Built in memory; :class:`BulletGripper` writes it to a
+    temporary file only while PyBullet parses it."""
+    robot = scaled_urdf(spec, scale, visual_from_collision)
     T_tcp_base = spec.T_base_tcp(scale).inverse()
     rpy = _urdf_rpy(T_tcp_base.rotation)
     xyz = T_tcp_base.translation
     origin = {"xyz": " ".join(f"{v:.9g}" for v in xyz), "rpy": " ".join(f"{v:.9g}" for v in rpy)}
-    key = hashlib.sha1(f"{ARM_LAYOUT}|{origin['xyz']}|{origin['rpy']}".encode()).hexdigest()[:10]
-    out = scaled.with_name(f"{scaled.stem}-arm-{key}.urdf")
-    if out.is_file():
-        return out
-    robot = ET.parse(scaled).getroot()
     children = {j.find("child").get("link") for j in robot.findall("joint")}
     roots = [link.get("name") for link in robot.findall("link") if link.get("name") not in children]
     if len(roots) != 1:
@@ -124,8 +116,7 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     for k, el in enumerate(links + joints + [mount]):
         robot.insert(k, el)
     ET.indent(robot)
-    atomic_write_text(out, ET.tostring(robot, encoding="unicode"))
-    return out
+    return ET.tostring(robot, encoding="unicode")
 
 
 def _urdf_rpy(R: np.ndarray) -> tuple[float, float, float]:
@@ -144,11 +135,14 @@ class BulletGripper:
     def __init__(self, client: int, spec: GripperSpec, scale: float = 1.0, visual_from_collision: bool = False) -> None:
         """``visual_from_collision`` renders the collision geometry (what the encoding sees)."""
         self.client, self.spec, self.scale = client, spec, float(scale)
-        urdf = mounted_urdf(spec, self.scale, visual_from_collision)
-        self.body_id = p.loadURDF(str(urdf), [0, 0, 0], useFixedBase=True,
-                                  flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+        text = mounted_urdf(spec, self.scale, visual_from_collision)
+        with tempfile.TemporaryDirectory(prefix="adagrasp-gripper-") as folder:
+            urdf = Path(folder) / "gripper.urdf"
+            urdf.write_text(text)
+            self.body_id = p.loadURDF(str(urdf), [0, 0, 0], useFixedBase=True,
+                                      flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
         if self.body_id < 0:
-            raise RuntimeError(f"{spec.spec_path}: PyBullet could not load {urdf}")
+            raise RuntimeError(f"{spec.spec_path}: PyBullet could not load {spec.urdf.name} mounted at scale {scale}")
         self._joint: dict[str, int] = {}
         self._link: dict[str, int] = {}
         for i in range(p.getNumJoints(self.body_id, physicsClientId=client)):

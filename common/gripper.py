@@ -25,6 +25,7 @@ import copy
 import hashlib
 import importlib.resources
 import importlib.util
+import io
 import os
 import re
 import xml.etree.ElementTree as ET
@@ -659,17 +660,16 @@ def check_scale(scale: float, flag: str = "scale") -> None:
         raise ValueError(f"{flag}: expected a value in [{lo:g}, {hi:g}], got {scale}")
 
 
-def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> Path:
-    """Path of the processed URDF scaled by ``scale`` (cached next to the processed URDF).
+def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = False) -> ET.Element:
+    """Root of the processed URDF scaled by ``scale``, built in memory; nothing is written.
 
-    With ``visual_from_collision`` every visual is replaced by the link's collision geometry
-    (renders then show exactly what collides, as the encoding does).
+    Training draws a new scale every episode, so a file per scale would pile up in the cache
+    (two small files an episode). Mesh filenames in the processed URDF are absolute, so the tree
+    loads from any folder. With ``visual_from_collision`` every visual is replaced by the link's
+    collision geometry (renders then show exactly what collides, as the encoding does); the hulls
+    this needs are cached in the processed URDF's folder.
     """
     check_scale(scale)
-    suffix = "-vc" if visual_from_collision else ""
-    out = spec.urdf.parent / f"gripper_s{scale:.6f}{suffix}.urdf"
-    if out.is_file():
-        return out
     robot = ET.parse(spec.urdf).getroot()
     if visual_from_collision:
         for link in robot.findall("link"):
@@ -684,12 +684,9 @@ def scaled_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = F
                     mesh.set("scale", "1 1 1")
                 link.append(v)
     try:
-        robot = scale_robot(robot, scale)
+        return scale_robot(robot, scale)
     except FormatError as e:
         raise GripperSpecError(f"{spec.spec_path}: source: {spec.urdf.name}: {e}") from None
-    ET.indent(robot)
-    atomic_write_text(out, ET.tostring(robot, encoding="unicode"))
-    return out
 
 
 def _hull_file(mesh_path: Path, scale_attr: str, folder: Path) -> Path:
@@ -735,9 +732,9 @@ class GripperModel:
         import yourdfpy
 
         self.spec, self.scale = spec, float(scale)
-        path = scaled_urdf(spec, scale)
+        text = ET.tostring(scaled_urdf(spec, scale), encoding="utf-8")
         try:
-            self.urdf = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False,
+            self.urdf = yourdfpy.URDF.load(io.BytesIO(text), build_scene_graph=True, load_meshes=False,
                                            build_collision_scene_graph=False, load_collision_meshes=False)
         except Exception as e:  # noqa: BLE001 - report any parser failure as one line
             raise GripperSpecError(f"{spec.spec_path}: source: URDF cannot be loaded ({type(e).__name__}: {e})") from None

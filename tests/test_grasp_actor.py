@@ -46,3 +46,5 @@ def test_stored_trial_is_the_attempt_that_ran(monkeypatch, tmp_path):
         assert result.outcome.opening == trial.meta.openings[trial.action[3]]
     # encodings of a random scale and random openings are never read again: none is written
     assert not list((tmp_path / "cache").rglob("*.npy"))
+    # nor is a URDF at the episode's scale (with or without the arm): only the processed ones stay
+    assert {f.name for f in (tmp_path / "cache" / "grippers").rglob("*.urdf")} == {"gripper.urdf"}
