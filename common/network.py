@@ -21,7 +21,12 @@ Layout (both scales come from the config; ``model.feature_cell`` is where the tw
 Rotation convention: the score at scene cell (i, j) of rotation k is the grasp whose TCP is at
 the centre of cell (i, j) with yaw theta_k = 2 pi k / R about +z, i.e. the gripper's own x axis
 (axis 0 of its grid) turned from world x towards world y by theta_k. Rotations are about the
-grid centre in cell units, so multiples of 90 degrees map cells onto cells exactly.
+grid centre in cell units, so multiples of 90 degrees map cells onto cells exactly. The
+encoders' stride-2 convs (3 x 3, padding 1) centre output cell o on input cell 2o rather than on
+the middle of the two cells it covers, half an input cell off per such layer. The scene and
+gripper encoders shift by different amounts when their voxel sizes differ; the net offset is
+the same at every rotation with ``rotate: scene`` (the scene is turned before it is encoded),
+so training absorbs it.
 
 Variants (``model.variant``): ``adagrasp`` (open + closed gripper TSDF), ``init-only`` (open
 only), ``scene-only`` (no gripper: the scene features go straight to the decoder; every gripper
