@@ -794,13 +794,13 @@ class ReplayShard:
             io["surface"].write(slot, rec.surface[None])
             for name in COLUMN_NAMES:
                 self._column_write(name, slot)
+            first = max(self._first, n + 1 - self.capacity)
+            evicted = range(self._first, first)
+            self._write_commit(first, n + 1)  # the last write: the trial is committed once it lands
         except Exception as e:  # noqa: BLE001 - nothing is committed; report one line
             if new_row:
                 heapq.heappush(self._free_rows, row)
             raise ReplayError(f"{self.path}: writing trial {n} failed ({_chunk_error(e)}); nothing committed") from None
-        first = max(self._first, n + 1 - self.capacity)
-        evicted = range(self._first, first)
-        self._write_commit(first, n + 1)
         # count the new trial's use of its row before the evicted trials release theirs: when it
         # reuses the row of its only evicted user, that row must not go back to the free list
         self._refcount[row] += 1

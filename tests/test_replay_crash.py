@@ -247,25 +247,28 @@ def test_a_shard_folder_that_lost_its_zarr_json_is_one_line_for_readers_and_resu
     assert sorted(p for p in root.rglob("*")) == before
 
 
-def test_a_failed_write_loses_only_that_trial_and_the_shard_goes_on(tmp_path):
-    """A chunk write that fails (a full disk) refuses that one insert; the trials before it and
-    the ones inserted after it, in reused slots with and without obstacles, read back as they
-    were written, in this process and in a fresh reader, with no problem reported."""
+@pytest.mark.parametrize("failing", ["surface", "commit"])
+def test_a_failed_write_loses_only_that_trial_and_the_shard_goes_on(tmp_path, failing):
+    """A chunk write that fails (a full disk), of the trial's data or of its commit, refuses that
+    one insert; the trials before it and the ones inserted after it, in reused slots with and
+    without obstacles, read back as they were written, in this process and in a fresh reader,
+    with no problem reported. (A failed commit once kept the new trial's gripper-table row off
+    the free list, and the next insert of a new gripper found none.)"""
     cfg = tiny_cfg(capacity=3, chunk=2)
     shard = ReplayShard(tmp_path / "s", cfg)
     trials = {}
     for e in range(4):
         trials[e] = make_trial(cfg, e, n_objects=2, n_obstacles=2 if e % 2 else 0)
         shard.insert(trials[e])
-    real = shard._io["surface"].write
+    real = shard._io[failing].write
 
     def full_disk(chunk, data):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    shard._io["surface"].write = full_disk
-    with pytest.raises(ReplayError):
+    shard._io[failing].write = full_disk
+    with pytest.raises(ReplayError, match="nothing committed"):
         shard.insert(make_trial(cfg, 99, n_objects=2, n_obstacles=2))
-    shard._io["surface"].write = real
+    shard._io[failing].write = real
     for e in range(4, 9):
         trials[e] = make_trial(cfg, e, n_objects=2, n_obstacles=2 if e % 2 else 0)
         shard.insert(trials[e])
