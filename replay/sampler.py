@@ -1,9 +1,10 @@
 """Class-balanced, surprise-ranked draws and the assembly of ready torch batches.
 
 The draw follows the AdaGrasp paper's training code: half the batch from successes, half from
-failures; within a class, trials are sorted by surprise |label - score| (ascending, stable) and
+failures; within a class, trials are sorted by surprise |label - score| (ascending) and
 trial at rank r (1 = least surprising) is drawn with probability r / sum(1..n), without
-replacement. A class with fewer trials than its half batch is drawn with replacement; an empty
+replacement. Tied surprises share the mean of their ranks (a score that saturates at 0 or 1
+ties many trials), so the order the shards list trials in weighs nothing. A class with fewer trials than its half batch is drawn with replacement; an empty
 class hands its half to the other class (the batch says so in ``balanced``).
 
 Usage::
@@ -23,11 +24,15 @@ from replay.schema import ReplayEmptyError
 
 
 def rank_probabilities(surprise: np.ndarray) -> np.ndarray:
-    """(n,) float64 draw probabilities: proportional to the rank of each surprise (1 = smallest)."""
+    """(n,) float64 draw probabilities: proportional to the rank of each surprise (1 = smallest;
+    equal surprises share their mean rank)."""
     n = len(surprise)
     order = np.argsort(surprise, kind="stable")
+    ordered = np.asarray(surprise)[order]
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    ends = np.r_[starts[1:], n]
     ranks = np.empty(n, np.float64)
-    ranks[order] = np.arange(1, n + 1, dtype=np.float64)
+    ranks[order] = np.repeat((starts + ends + 1) / 2, ends - starts)  # mean of ranks starts+1..ends
     return ranks / ranks.sum()
 
 

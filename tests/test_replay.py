@@ -561,8 +561,22 @@ def test_corrupt_column_chunk_loses_only_its_trials(tmp_path):
 def test_rank_probabilities_follow_the_paper():
     surprise = np.array([0.9, 0.1, 0.5, 0.1])
     p = rank_probabilities(surprise)
-    # ascending stable ranks: 0.1 (idx 1) -> 1, 0.1 (idx 3) -> 2, 0.5 -> 3, 0.9 -> 4
-    assert np.allclose(p, np.array([4, 1, 3, 2]) / 10)
+    # ascending ranks: the two 0.1 share ranks 1 and 2 -> 1.5 each, 0.5 -> 3, 0.9 -> 4
+    assert np.allclose(p, np.array([4, 1.5, 3, 1.5]) / 10)
+    assert np.allclose(rank_probabilities(np.array([0.3, 0.1, 0.2])), np.array([3, 1, 2]) / 6)
+
+
+def test_tied_surprises_weigh_the_same_wherever_they_are_listed():
+    """Shards list their trials one shard after another, so a tie broken by position would favour
+    the last shard's and the newest trials (a saturated score ties many)."""
+    rng = np.random.default_rng(1)
+    surprise = rng.choice(np.array([0.0, 0.25, 1.0], np.float32), size=200)
+    p = rank_probabilities(surprise)
+    for value in (0.0, 0.25, 1.0):
+        assert np.ptp(p[surprise == value]) == 0, value
+    perm = rng.permutation(len(surprise))
+    assert np.array_equal(rank_probabilities(surprise[perm]), p[perm])
+    assert p.sum() == pytest.approx(1.0) and p[surprise == 1.0][0] > p[surprise == 0.25][0] > p[surprise == 0.0][0]
 
 
 def test_balance_one_to_one_over_2000_draws(tmp_path):
