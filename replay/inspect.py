@@ -295,13 +295,26 @@ def parse_range(text: str, count: int) -> range:
 
 
 def export_trials(path: str | Path, trials: str, out: str | Path) -> dict:
-    """Decoded trials A:B as plain arrays in one .npz; returns {name: shape}."""
+    """Decoded trials A:B as plain arrays in one .npz; returns {name: shape}. A trial that cannot
+    be read (a damaged chunk, or evicted by a live writer since the replay was opened) is left
+    out with one warning; ``position`` lists the trials exported."""
     readers = open_readers(path)
     table = trial_table(readers)
     positions = np.asarray(parse_range(trials, len(table["trial_id"])), np.int64)
     if not len(positions):
         raise ReplayError(f"{path}: --trials {trials}: selects no trial (replay holds {len(table['trial_id'])})")
-    got = [readers[k].get_trial(t) for k, t in _select(table, positions)]
+    got, kept, metas = [], [], []
+    for position, (k, t) in zip(positions.tolist(), _select(table, positions)):
+        try:
+            got.append(readers[k].get_trial(t))
+        except ReplayError as e:
+            warnings.warn(f"trial {position} left out: {str(e).splitlines()[0]}", stacklevel=2)
+            continue
+        kept.append(position)
+        metas.append(str(readers[k].column("meta", [t])[0]))
+    if not got:
+        raise ReplayError(f"{path}: --trials {trials}: none of the {len(positions)} selected trials can be read")
+    positions = np.asarray(kept, np.int64)
     arrays = {
         "position": positions,
         "shard": table["shard"][positions],
@@ -316,7 +329,7 @@ def export_trials(path: str | Path, trials: str, out: str | Path) -> dict:
         "action": np.array([t.action for t in got], np.int64),
         "label": np.array([t.label for t in got], bool),
         "score": np.array([t.score for t in got], np.float64),
-        "meta_json": np.array([str(readers[k].column("meta", [t])[0]) for k, t in _select(table, positions)]),
+        "meta_json": np.array(metas),
     }
     out = Path(out)
     np.savez_compressed(out, **arrays)

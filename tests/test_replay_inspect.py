@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from replay.client import ReplayClient, open_local_shards
-from replay.inspect import cli
+from replay.inspect import cli, open_readers, trial_table
 from replay.schema import max_errors
 from replay.shard import ReplayShard
 from replay.synthetic import numbered_trial as make_trial
@@ -84,6 +84,29 @@ def test_export_matches_the_stored_trials(replay_root, tmp_path):
         assert str(data["gripper_key"][b]) == t.gripper_key
     assert list(data["position"]) == [2, 3, 4, 5, 6]
     assert (np.diff(data["insert_time"]) >= 0).all()
+
+
+def test_export_leaves_out_an_unreadable_trial_with_one_warning(replay_root, tmp_path, capsys):
+    """A damaged chunk costs its own trial only: the rest of the range is exported, and the
+    position column says which trials came out."""
+    root, cfg, trials = replay_root
+    (root / "shard_000" / "tsdf" / "c.2.0.0.0").write_bytes(b"not a chunk")
+    table = trial_table(open_readers(root))
+    bad = int(np.flatnonzero((table["shard"] == 0) & (table["trial_id"] == 2))[0])
+    npz = tmp_path / "e.npz"
+    assert cli(["export", str(root), "--trials", "0:12", "--out", str(npz)]) == 0
+    data = np.load(npz)
+    assert list(data["position"]) == [p for p in range(12) if p != bad]
+    by_episode = {t.meta.episode_id: t for t in trials}
+    for b, meta in enumerate(data["meta_json"]):
+        t = by_episode[json.loads(str(meta))["episode_id"]]
+        assert tuple(data["action"][b]) == t.action and str(data["gripper_key"][b]) == t.gripper_key
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [line for line in err if f"trial {bad} left out" in line], err
+    assert all(line.startswith("warning: ") for line in err), err
+    assert cli(["export", str(root), "--trials", f"{bad}:{bad + 1}", "--out", str(tmp_path / "none.npz")]) == 2
+    assert "none of the 1 selected trials can be read" in capsys.readouterr().err
+    assert not (tmp_path / "none.npz").exists()
 
 
 def test_errors_are_one_line_with_exit_code_2(replay_root, tmp_path, capsys):
