@@ -927,8 +927,31 @@ def evaluate(argv: list[str]) -> dict:
     return summary
 
 
+def scene_object_notes(results: list[tuple[str, dict]]) -> list[str]:
+    """One ``note:`` line per result and scene seed whose objects differ from the objects most
+    results hold at that seed (same scene kind and object set): the table keeps such a scene, while
+    ``evaluate compare`` and ``evaluate runs`` refuse it (or leave it out)."""
+    held: dict[tuple, dict[str, list[str]]] = {}
+    for path, s in results:
+        for e in s["episode_results"]:
+            objects = json.dumps(e["objects"])
+            paths = held.setdefault((s["scene"], s["objects"], e["scene_seed"]), {}).setdefault(objects, [])
+            if path not in paths:
+                paths.append(path)
+    notes = []
+    for (scene, objects, seed), by_objects in held.items():
+        usual = max(by_objects, key=lambda k: len(by_objects[k]))
+        for other, paths in by_objects.items():
+            if other != usual:
+                notes += [f"note: {p}: scene_seed {seed} ({scene}, {objects}): other objects than in "
+                          f"{by_objects[usual][0]}; the table keeps the scene, evaluate compare and evaluate runs "
+                          "refuse it (runs --drop-mismatched-scenes leaves it out)" for p in paths]
+    return notes
+
+
 def table(argv: list[str]) -> str:
-    """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it."""
+    """``evaluate table``: merge result files; writes the Markdown to --md or prints it; returns it.
+    Scenes of other objects at one seed (:func:`scene_object_notes`) are named on stderr."""
     args = _table_parser().parse_args(argv)
     check_output_path("--md", args.md, args.results)
     from actors.compare_runs import pool_result  # imported here: actors.compare_runs builds on this module
@@ -941,6 +964,8 @@ def table(argv: list[str]) -> str:
                                   "(one model's scene seeds)")
         results.append((" + ".join(paths), pool_result(paths) if len(paths) > 1 else read_result(arg)))
     markdown = table_markdown(results, runs=args.runs)
+    for note in scene_object_notes(results):
+        print(note, file=sys.stderr)
     if args.md:
         _write_atomic(args.md, markdown)
     else:

@@ -416,6 +416,27 @@ def test_table_says_when_rows_of_a_column_ran_on_different_scenes(scripted, tmp_
     assert "another number of scenes" in md and f"single O_tr/G_{GRIPPER}: heuristic 2 (the other rows 1)" in md, md
 
 
+def test_table_names_a_scene_of_other_objects_on_stderr(scripted, tmp_path, capsys):
+    """A result whose scene at a seed holds other objects than the other results' at that seed (a
+    file measured with another object set, say) is named on one note line; the Markdown is the
+    same as without the note, and results of the same objects give no note."""
+    single, single_path = scripted("single", "heuristic")
+    rnd, rnd_path = scripted("single", "random")
+    fix = relabel(single, tmp_path, "fix", policy="fix-gripper")
+    clean = ev.table([str(single_path), str(rnd_path), str(fix)])
+    assert capsys.readouterr().err == ""
+    episodes = [dict(e) for e in rnd["episode_results"]]
+    episodes[0]["objects"] = [["some_other_object", "target"]]
+    odd = relabel(rnd, tmp_path, "odd", episode_results=episodes)
+    md = ev.table([str(single_path), str(odd), str(fix)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert md == clean.replace(str(rnd_path), str(odd))
+    seed = episodes[0]["scene_seed"]
+    assert err == [f"note: {odd}: scene_seed {seed} (single, train): other objects than in {single_path}; the table "
+                   "keeps the scene, evaluate compare and evaluate runs refuse it (runs --drop-mismatched-scenes "
+                   "leaves it out)"], err
+
+
 def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys):
     single, single_path = scripted("single", "heuristic")
     two = relabel(single, tmp_path, "two", cameras=2, rate=0.5)
