@@ -128,6 +128,10 @@ def check_sim_config(cfg: Config) -> None:
         raise ConfigError(f"sim.lift_to: {sim.lift_to} m must exceed sim.lift_height {sim.lift_height} m")
     if not sim.lift_height > grid.z_range[1]:
         raise ConfigError(f"sim.lift_height: {sim.lift_height} m must exceed the scene grid top {grid.z_range[1]} m")
+    try:
+        scene_cameras(grid, sim)  # camera height, ring radius and resolution (each error names its key)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 class Simulation:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.resources
+import math
 import re
 import types
 import typing
@@ -405,7 +406,7 @@ _RANGES: dict[str, tuple[float, float]] = {
     "learner.augment_prob": (0.0, 1.0),
     "learner.epsilon_start": (0.0, 1.0),
     "learner.epsilon_end": (0.0, 1.0),
-    "learner.samples_per_insert": (0.0, 1e6),
+    "learner.samples_per_insert": (1e-6, 1e6),
     "learner.insert_lead": (0.0, 1e9),
     "learner.publish_every": (1, 10**9),
     "learner.ema_decay": (0.0, 0.9999),
@@ -476,6 +477,8 @@ def _coerce(name: str, tp: Any, value: Any, source: str) -> Any:
             value = float(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{source}: {name}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{source}: {name}: expected a finite number, got {value!r}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -551,6 +554,10 @@ def _cross_checks(cfg: Config, source: str | typing.Callable[[tuple[str, ...]], 
                  "model.feature_cell")
     if any(s <= 0 for s in cfg.gripper_grid.shape):
         fail("gripper_grid.shape", f"every dimension must be positive, got {cfg.gripper_grid.shape}")
+    top = cfg.gripper_grid.shape[2] * cfg.gripper_grid.voxel_size
+    if not 0 < cfg.gripper_grid.tcp_height < top:
+        fail("gripper_grid.tcp_height", f"{cfg.gripper_grid.tcp_height} m must lie inside the grid's height, "
+             f"(0, {top:g}) m (gripper_grid.shape[2] x voxel_size)", "gripper_grid.shape", "gripper_grid.voxel_size")
     for name in ("scene_widths", "gripper_widths"):
         widths = getattr(cfg.model, name)
         if not widths or any(w < 1 for w in widths):

@@ -41,9 +41,13 @@ def precision_autocast(device: torch.device, precision: str) -> torch.autocast:
 
 
 def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available, else cpu."""
+    """``auto`` -> cuda when available, else cpu; ValueError in one line for ``cuda`` where this
+    process's torch sees no CUDA device."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"learner.device: cuda, but torch {torch.__version__} sees no CUDA device here "
+                         "(auto uses one when there is one)")
     return torch.device(name)
 
 

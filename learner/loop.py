@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import time
 from collections import deque
 from pathlib import Path
@@ -74,14 +75,38 @@ its process alive) ends the run with that error; a lost process (the actor's own
 owner of the weights it fetches) is Ray's to restart, and the run continues."""
 
 
+ACTOR_DEATHS = 5
+"""An actor whose process is lost this many times in a row without finishing an episode chunk
+(its constructor fails, so every restart dies at once) ends the run with the last error; a
+process lost now and then is Ray's to restart, and the run continues."""
+
+
 class ActorFailures:
-    """Consecutive failed episode chunks per actor (see ACTOR_TASK_FAILURES)."""
+    """Consecutive failed episode chunks and lost processes per actor (see ACTOR_TASK_FAILURES
+    and ACTOR_DEATHS)."""
 
     def __init__(self, n_actors: int) -> None:
         self.count = [0] * n_actors
+        self.deaths = [0] * n_actors
 
     def succeeded(self, actor: int) -> None:
         self.count[actor] = 0
+        self.deaths[actor] = 0
+
+    def died(self, actor: int, error: Exception) -> str:
+        """A chunk lost with the actor's process (a Ray actor error): its one-line description;
+        ActorTaskError once the process was lost ACTOR_DEATHS times in a row."""
+        lines = [line.strip() for line in str(error).strip().splitlines() if line.strip()]
+        # a failed constructor's message ends with the exception it raised ("ValueError: ...")
+        raised = [line for line in lines if re.match(r"^[A-Za-z_][\w.]*(Error|Exception): ", line)]
+        line = f"{type(error).__name__}: {(raised or lines or [''])[-1]}".rstrip(": ")
+        self.deaths[actor] += 1
+        if self.deaths[actor] >= ACTOR_DEATHS:
+            raise ActorTaskError(
+                f"actor {actor}: its process was lost {self.deaths[actor]} times in a row without finishing an "
+                f"episode chunk, the last with {line}"
+            )
+        return line
 
     def failed(self, actor: int, error: Exception) -> tuple[str, bool]:
         """A chunk that raised ``error`` (a Ray task error: its ``cause`` is the exception raised
@@ -576,8 +601,13 @@ def run_distributed(
                     progress.add_reports(ray.get(ref))
                     failures.succeeded(a)
                 except RayActorError as e:
+                    try:
+                        line = failures.died(a, e)
+                    except ActorTaskError as end:
+                        error = str(end)
+                        break
                     restarts += 1
-                    print(f"actor {a}: {type(e).__name__}; it restarts and continues", flush=True)
+                    print(f"actor {a}: process lost ({line}); it restarts and continues", flush=True)
                 except RayTaskError as e:
                     try:
                         line, own = failures.failed(a, e)

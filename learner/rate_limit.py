@@ -5,7 +5,8 @@ once the replay holds ``min_replay`` trials. The paper's schedule is 32 batches 
 new trials, i.e. 32 samples per insert. The limit holds on both sides: the learner waits for
 trials, and actors wait (start no new episode) while the trials inserted run more than
 ``insert_lead`` ahead of what the learner has sampled, so a slow learner is not starved by
-fast actors (on a laptop they share the cores). Call loop::
+fast actors (on a laptop they share the cores), but never while the learner cannot take a step.
+Call loop::
 
     limiter = SamplesPerInsert(spi=32, min_replay=32, batch_size=8, insert_lead=32)
     steps = limiter.allowed_steps(inserted=replay_total, sampled=learner_samples)
@@ -50,5 +51,8 @@ class SamplesPerInsert:
         return inserted - self.min_replay - sampled / self.spi
 
     def may_insert(self, inserted: int, sampled: int) -> bool:
-        """Whether actors may start another episode now."""
-        return self.insert_lead <= 0 or self.spi <= 0 or self.lead(inserted, sampled) < self.insert_lead
+        """Whether actors may start another episode now: while the inserts lead by less than
+        ``insert_lead``, and always while the learner cannot take a step (were they to wait then,
+        when ``spi * (insert_lead + 1) < batch_size``, neither side would move again)."""
+        return (self.insert_lead <= 0 or self.spi <= 0 or self.lead(inserted, sampled) < self.insert_lead
+                or self.allowed_steps(inserted, sampled) == 0)

@@ -75,6 +75,14 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
                 f"{run_dir / 'config.yaml'}: replay.seed_from: a resumed run keeps its replay ({origin}); "
                 f"it cannot be seeded again"
             )
+        started = ((stored.get("learner") if isinstance(stored, dict) else None) or {})
+        for key in ("samples_per_insert", "min_replay"):
+            if key in started and getattr(cfg.learner, key) != started[key]:
+                raise ConfigError(
+                    f"{run_dir / 'config.yaml'}: learner.{key}: {started[key]} in this run, "
+                    f"{getattr(cfg.learner, key)} with --set; a resumed run keeps it (the learner's budget "
+                    f"of samples counts every trial since the run began)"
+                )
     else:
         cfg = load_config(args.config or "default", overrides=args.set)
         if not args.run_dir and not cfg.run.run_dir:
@@ -114,6 +122,13 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
         initial_weights(cfg)
     check_names(cfg, source)
+    if args.address is None:  # the learner runs on this machine: its device must be here
+        from learner.learner import resolve_device
+
+        try:
+            resolve_device(cfg.learner.device)
+        except ValueError as e:
+            raise ConfigError(f"{source}: {e}") from None
     new_dir = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.replay.seed_from and not args.resume:
@@ -155,6 +170,9 @@ def check_names(cfg: Config, source: str) -> None:
         check_sim_config(cfg)
     except ConfigError as e:
         raise ConfigError(f"{source}: {e}") from None
+    if cfg.learner.min_replay > cfg.replay.capacity:
+        raise ConfigError(f"{source}: learner.min_replay: {cfg.learner.min_replay} trials before training, but the "
+                          f"replay holds at most replay.capacity {cfg.replay.capacity}")
     try:
         split_grippers(cfg)
     except ValueError as e:  # GripperSpecError, or a selection of no gripper

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 import zarr
 
 from common.checkpoint import read_checkpoint
@@ -216,6 +217,12 @@ def test_bad_config_value_is_one_line(tmp_path, capsys):
     ("sim.objects=nosuch", "sim.objects: object set 'nosuch': unknown"),
     ("model.feature_cell=0.024", "scene_grid.voxel_size: model.feature_cell / voxel_size must be a power of 2"),
     ("sim.fence_half_extent=0.01", "sim.drop_half_extent: 0.1 m must be below sim.fence_half_extent 0.01 m"),
+    ("sim.camera_height=-1", "sim.camera_height: -1.0 m must exceed the grid top"),
+    ("sim.image_pixels_per_voxel=0", "sim.image_pixels_per_voxel: expected > 0, got 0.0"),
+    ("learner.min_replay=5000", "learner.min_replay: 5000 trials before training, but the replay holds at most "
+                                "replay.capacity 2000"),
+    pytest.param("learner.device=cuda", "learner.device: cuda, but torch",
+                 marks=pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device")),
 ])
 def test_a_name_or_network_the_run_cannot_use_is_one_line_and_starts_nothing(tmp_path, capsys, override, field):
     """An unknown training gripper or object set, or grids the network's widths cannot encode, is

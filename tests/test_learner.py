@@ -723,6 +723,71 @@ def test_an_actor_whose_episodes_keep_failing_ends_the_run_with_the_error():
         failures.failed(1, task_error(ValueError("x")))
 
 
+def test_an_actor_whose_process_keeps_dying_ends_the_run_with_its_constructors_error():
+    """A constructor that raises kills the actor's process at every restart, so each chunk fails at
+    once: the driver counts the losses in a row (a finished chunk clears them) and the fifth ends
+    the run, naming the exception the constructor raised; before, it resubmitted forever."""
+    from learner.loop import ACTOR_DEATHS, ActorFailures, ActorTaskError
+
+    class ActorDiedError(Exception):  # the message Ray gives for a failed creation task
+        pass
+
+    died = ActorDiedError(
+        "The actor died because of an error raised in its creation task, ray::ActorProcess.__init__() (pid=1)\n"
+        "           ^^^^^^^^\n  File \"actors/grasp_actor.py\", line 90, in __init__\n"
+        "ValueError: sim.camera_height: -1.0 m must exceed the grid top z = 0.128 m"
+    )
+    failures = ActorFailures(2)
+    line = failures.died(0, died)
+    assert line == "ActorDiedError: ValueError: sim.camera_height: -1.0 m must exceed the grid top z = 0.128 m"
+    assert failures.died(1, ActorDiedError("")) == "ActorDiedError"
+    failures.succeeded(0)  # a chunk that ran: a process lost now and then never ends the run
+    for _ in range(ACTOR_DEATHS - 1):
+        failures.died(0, died)
+    with pytest.raises(ActorTaskError, match=r"^actor 0: its process was lost 5 times in a row without finishing an "
+                                             r"episode chunk, the last with ActorDiedError: ValueError: sim.camera"):
+        failures.died(0, died)
+
+
+def test_the_actors_never_wait_while_the_learner_cannot_step():
+    """With samples_per_insert x (insert_lead + 1) below one batch, the actors reached their lead
+    before the learner had a whole batch of budget: both sides waited for ever."""
+    from learner.rate_limit import SamplesPerInsert
+
+    for spi, lead in ((0.1, 1), (0.1, 32), (0.25, 4), (0.5, 4), (32.0, 32.0)):
+        limiter = SamplesPerInsert(spi=spi, min_replay=8, batch_size=8, insert_lead=lead)
+        inserted = sampled = 0
+        for _ in range(100_000):
+            if limiter.allowed_steps(inserted, sampled):
+                sampled += 8
+            elif limiter.may_insert(inserted, sampled) and inserted < 400:
+                inserted += 1
+            elif inserted >= 400:
+                break
+            else:
+                raise AssertionError(f"spi {spi}, insert_lead {lead}: stuck at {inserted} trials, {sampled} samples")
+        assert inserted >= 400
+        assert sampled == 8 * int(spi * (inserted - 8 + 1) // 8), (spi, lead)
+
+
+def test_a_resume_keeps_the_rate_limits_ratio_and_start(tmp_path):
+    """The learner's budget is samples_per_insert x (trials since min_replay): a new ratio on a
+    resume would apply to the whole run (at 8 instead of 32 after 1,000 trials, the learner idles
+    for about 2,900 trials; at 64, it takes thousands of steps on no new data). Refused in one
+    line, config untouched; other learner keys still change."""
+    from learner.run import parse_args, resolve
+
+    run = _tiny_run_with_one_trial(tmp_path / "run")
+    before = (run / "config.yaml").read_bytes()
+    for key, value in (("samples_per_insert", 64), ("min_replay", 100)):
+        with pytest.raises(ConfigError, match=rf"config.yaml: learner.{key}: .* a resumed run keeps it") as e:
+            resolve(parse_args(["--resume", "--run-dir", str(run), "--set", f"learner.{key}={value}"]))
+        assert "\n" not in str(e.value)
+        assert (run / "config.yaml").read_bytes() == before
+    cfg, _ = resolve(parse_args(["--resume", "--run-dir", str(run), "--set", "learner.lr=0.0005"]))
+    assert cfg.learner.lr == 0.0005
+
+
 def test_a_resume_can_mend_the_runs_config_with_set(tmp_path):
     """--set on --resume is applied before the cross-field checks: an odd batch size in the run's
     config.yaml is mended by --set learner.batch_size=8, not refused."""
