@@ -4,8 +4,9 @@ The draw follows the AdaGrasp paper's training code: half the batch from success
 failures; within a class, trials are sorted by surprise |label - score| (ascending) and
 trial at rank r (1 = least surprising) is drawn with probability r / sum(1..n), without
 replacement. Tied surprises share the mean of their ranks (a score that saturates at 0 or 1
-ties many trials), so the order the shards list trials in weighs nothing. A class with fewer trials than its half batch is drawn with replacement; an empty
-class hands its half to the other class (the batch says so in ``balanced``).
+ties many trials), so the order the shards list trials in weighs nothing. A class with fewer
+trials than its half batch is drawn with replacement; an empty class hands its half to the other
+class (the batch says so in ``balanced``).
 
 Usage::
 
