@@ -304,7 +304,7 @@ def initial_weights(cfg: Config) -> Checkpoint | None:
         key, a, b = differ
         raise CheckpointError(f"{path}: learner.init_weights: {key} is {b!r} there but {a!r} in this run")
     try:
-        with torch.random.fork_rng():  # the trial build leaves torch's global generator as it was
+        with torch.random.fork_rng(devices=[]):  # the trial build leaves torch's global (CPU) generator as it was
             build_model(cfg).load_state_dict(ckpt.model_state)
     except RuntimeError as e:
         first = " ".join(str(e).split())[:200]

@@ -269,6 +269,11 @@ class LearnerConfig:
 
     lr: float = 5e-4
     """Adam learning rate."""
+    adam_beta1: float = 0.9
+    """Adam's first-moment decay (torch's default and the paper's)."""
+    adam_beta2: float = 0.999
+    """Adam's second-moment decay: torch's default, with which every shipped model was trained; the
+    paper's code uses 0.95 (configs/paper.yaml)."""
     batch_size: int = 8
     """Trials per batch (half successes, half failures)."""
     augment_prob: float = 0.7
@@ -399,6 +404,8 @@ _RANGES: dict[str, tuple[float, float]] = {
     "replay.actor_task_retries": (-1, 10**6),
     "replay.shard_num_cpus": (0.0, 1024.0),
     "learner.lr": (1e-9, 1.0),
+    "learner.adam_beta1": (0.0, 0.9999),
+    "learner.adam_beta2": (0.0, 0.99999),
     "learner.batch_size": (2, 4096),
     "learner.min_replay": (0, 10**9),
     "learner.epsilon_decay_trials": (0, 10**12),

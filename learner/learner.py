@@ -51,6 +51,10 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+class TrainingDivergedError(RuntimeError):
+    """A training step gave a non-finite loss or scores: the weights can no longer be trusted."""
+
+
 @dataclass
 class TrainStats:
     """Running statistics of the learner since it started."""
@@ -83,7 +87,9 @@ class Learner:
         with torch.random.fork_rng(devices=[]):  # the initial weights follow ``seed``, not the process
             torch.manual_seed(seed)
             self.model = build_model(cfg).to(self.device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.learner.lr)
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(), lr=cfg.learner.lr, betas=(cfg.learner.adam_beta1, cfg.learner.adam_beta2)
+        )
         self.generator = torch.Generator().manual_seed(seed)
         self.limiter = SamplesPerInsert.from_config(cfg.learner)
         self.stats = TrainStats()
@@ -147,6 +153,12 @@ class Learner:
             with torch.no_grad():
                 b = torch.arange(logits.shape[0], device=logits.device)
                 prob = torch.softmax(logits[b, :, action[:, 0], action[:, 1]], dim=1)[:, 1].cpu()
+            if not (torch.isfinite(prob).all() and torch.isfinite(loss.detach())):
+                # before the scores reach the replay; checkpoints keep the last finite weights
+                raise TrainingDivergedError(
+                    f"learner step {self.stats.steps + 1}: loss {float(loss.detach()):.4g} or predicted scores not finite: "
+                    f"training diverged (try a lower learner.lr, or learner.precision=fp32)"
+                )
             self.replay.update_scores(batch.index, prob.numpy())
             losses.append(float(loss.detach()))
             lab = batch.label.bool()
@@ -195,9 +207,10 @@ class Learner:
 
     def load_state_dict(self, state: dict) -> None:
         """Inverse of :meth:`state_dict`. Without a stored average (a run resumed with averaging
-        newly switched on) the average restarts from the loaded weights. The learning rate is this
-        learner's ``learner.lr``, not the stored one: a run resumed with ``--set learner.lr=...``
-        trains at the new rate (Adam's moment estimates are kept). The optimiser state is copied:
+        newly switched on) the average restarts from the loaded weights. The learning rate and Adam's
+        betas are this learner's (``learner.lr``, ``learner.adam_beta1/2``), not the stored ones: a
+        run resumed with ``--set learner.lr=...`` trains at the new rate (Adam's moment estimates
+        are kept). The optimiser state is copied:
         torch's optimiser would otherwise keep the given tensors, and a state taken from a live
         learner in the same process would then move with that learner's steps."""
         self.model.load_state_dict(state["model"])
@@ -208,6 +221,7 @@ class Learner:
         self.optimizer.load_state_dict(copy.deepcopy(state["optimizer"]))
         for group in self.optimizer.param_groups:
             group["lr"] = self.cfg.learner.lr
+            group["betas"] = (self.cfg.learner.adam_beta1, self.cfg.learner.adam_beta2)
         self.stats.steps = int(state["steps"])
         self.stats.samples = int(state["samples"])
         self.stats.version = int(state["version"])

@@ -31,6 +31,7 @@ import torch
 
 from actors.grasp_actor import EpisodeReport, GraspActor
 from common.checkpoint import (
+    CheckpointError,
     checkpoint_origin_file,
     initial_weights,
     portable_init_source,
@@ -38,12 +39,12 @@ from common.checkpoint import (
     save_checkpoint,
 )
 from common.config import Config
-from common.files import finite_json
+from common.files import atomic_write_text, finite_json
 from common.policy import action_region
 from common.runtime import ray_init
 from common.tsdf import heightmap_from_tsdf
 from common.viz import score_maps_image
-from learner.learner import Learner, epsilon_at, resolve_device
+from learner.learner import Learner, TrainingDivergedError, epsilon_at, resolve_device
 from learner.rate_limit import SamplesPerInsert
 from replay.client import ReplayClient, open_local_shards, start_remote_shards
 from replay.schema import ReplayEmptyError
@@ -134,6 +135,26 @@ def checkpoint_path(run_dir: Path) -> Path:
     return Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
 
 
+def weights_only_message(path: Path) -> str:
+    """The one line for resuming from a checkpoint without learner state or optimiser."""
+    return (f"{path}: extra.learner: missing (a weights-only file: a step-*.pt snapshot, an averaged or "
+            f"exported model); a run resumes only from the latest.pt it wrote")
+
+
+def non_finite_tensors(state: dict) -> list[str]:
+    """Names of the floating-point tensors of a state dict that hold NaN or infinity."""
+    return [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+
+
+def _ends_mid_line(path: Path) -> bool:
+    """True when the non-empty file ``path`` does not end with a newline (a write was cut off)."""
+    with open(path, "rb") as f:
+        if f.seek(0, os.SEEK_END) == 0:
+            return False
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) != b"\n"
+
+
 def total_inserted(replay: ReplayClient) -> int:
     """Trials this run's actors ever committed to the replay (all shards, evicted ones included;
     trials a new replay was seeded with, replay.seed_from, are not counted)."""
@@ -169,6 +190,8 @@ class LearnerProcess:
         checkpoint; None for a random start."""
         if ckpt.is_file():
             c = read_checkpoint(ckpt)
+            if not isinstance(c.extra.get("learner"), dict) or c.optimizer is None:
+                raise CheckpointError(weights_only_message(ckpt))
             ls = dict(c.extra["learner"])
             sampler = ls.pop("replay_sampler", None)
             if sampler is not None:  # checkpoints before it was kept: a stream from the seed
@@ -256,6 +279,16 @@ class LearnerProcess:
         if next_episode is not None:
             self.next_episode = [int(e) for e in next_episode]
         ls = self.learner.state_dict()
+        latest = checkpoint_path(self.run_dir)
+        bad = non_finite_tensors(ls["model"]) + non_finite_tensors(ls["average"] or {})
+        if bad:
+            print(f"learner step {ls['steps']}: weights not finite ({bad[0]} and {len(bad) - 1} more tensors); "
+                  f"{latest} not overwritten, it keeps the last finite weights", flush=True)
+            return str(latest)
+        try:
+            self.replay.flush()  # score updates in flight land before the sampler state is saved
+        except Exception as e:  # noqa: BLE001 - a lost shard must not cost the checkpoint
+            print(f"learner: score updates in flight failed before the checkpoint ({type(e).__name__})", flush=True)
         replay = {"inserted": int(inserted), "shards": self.cfg.replay.shards, "next_episode": list(self.next_episode)}
         learner_state = {
             "samples": ls["samples"], "history": ls["history"], "generator": ls["generator"],
@@ -269,7 +302,7 @@ class LearnerProcess:
         policy = self.learner.policy_model
         origin = {} if self.init_source is None else {"init_weights": self.init_source}
         path = save_checkpoint(
-            checkpoint_path(self.run_dir), policy, self.cfg,
+            latest, policy, self.cfg,
             step=ls["steps"], version=ls["version"], epsilon=epsilon, optimizer=ls["optimizer"],
             extra={"learner": learner_state, "replay": replay, **origin},
         )
@@ -334,7 +367,10 @@ class Progress:
         self.samples_at_start: int | None = None
         self.recent: deque = deque(maxlen=200)
         self.by_group: dict[str, deque] = {}
-        self.log = open(Path(run_dir) / "progress.jsonl", "a")
+        log = Path(run_dir) / "progress.jsonl"
+        self.log = open(log, "a")
+        if _ends_mid_line(log):
+            self.log.write("\n")  # a part killed mid-line: its torn line stays alone on its line
         self.tb = SummaryWriter(str(Path(run_dir) / "tb"))
         self.dashboard = dashboard
         self.episodes = 0
@@ -436,6 +472,7 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
     actor.set_weights(version, box[0])
     published = 1
     inserted = learner.inserted()
+    error = None  # training diverged: the run ends with this line
     try:
         while not _done(cfg, inserted, t0, stop):
             eps = epsilon_at(cfg, inserted)
@@ -456,6 +493,8 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
                 learner.checkpoint(eps, inserted, snapshot=True, next_episode=[actor.episode, *episodes[1:]])
                 progress.add_score_maps(learner.score_map_image())
                 last_ckpt = time.time()
+    except TrainingDivergedError as e:
+        error = str(e)
     finally:
         actor.close()
         inserted = learner.inserted()
@@ -464,7 +503,8 @@ def run_local(cfg: Config, run_dir: Path, stop: dict, quiet: bool = False) -> di
         progress.close()
         for s in shards:
             s.close()
-    return _summary(run_dir, inserted, stats, progress, {"mode": "local", "weights_published": published})
+    extra = {"mode": "local", "weights_published": published, **({"error": error} if error is not None else {})}
+    return _summary(run_dir, inserted, stats, progress, extra)
 
 
 def _first_call_after_restart(call):
@@ -580,7 +620,7 @@ def run_distributed(
         learner_future = learner.train.remote(LEARNER_CHUNK_STEPS, idle_wait_s=LEARNER_IDLE_WAIT_S)
 
     t0 = last_ckpt = time.time()
-    error = None  # an actor's episodes kept failing: the run ends with this line
+    error = None  # an actor's episodes kept failing, or training diverged: the run ends with this line
     try:
         while error is None and not _done(cfg, inserted, t0, stop):
             ready, _ = ray.wait(list(pending) + [learner_future], num_returns=1, timeout=1.0)
@@ -591,6 +631,11 @@ def run_distributed(
                     except RayActorError as e:
                         learner_lost(e)
                         continue
+                    except RayTaskError as e:
+                        if not isinstance(e.cause, TrainingDivergedError):
+                            raise
+                        error = str(e.cause)
+                        break
                     if stats["weights"] is not None:
                         version, box = stats["weights"]
                         published += 1
@@ -667,7 +712,7 @@ def run_distributed(
         finally:
             progress.close()
             ray.shutdown()
-    (Path(run_dir) / "history.json").write_text(json.dumps(finite_json(history)))
+    atomic_write_text(Path(run_dir) / "history.json", json.dumps(finite_json(history)))
     return _summary(
         run_dir, inserted, stats, progress,
         {"mode": "ray", "actors": n_actors, "weights_published": published, "actor_restarts": restarts,

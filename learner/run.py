@@ -103,13 +103,17 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         from replay.shard import check_shards
 
         check_shards(run_dir / "replay", cfg)
-    from learner.loop import checkpoint_path
+    from learner.loop import checkpoint_path, weights_only_message
 
     own = checkpoint_path(run_dir)
     if own.is_file():
-        # A run with a checkpoint of its own continues from it: an unreadable one, or one of another
-        # network than the config's, is refused here in one line, before anything starts.
-        differ = network_difference(cfg, read_checkpoint(own).cfg)
+        # A run with a checkpoint of its own continues from it: an unreadable one, one without the
+        # learner's state, or one of another network than the config's, is refused here in one
+        # line, before anything starts.
+        stored = read_checkpoint(own)
+        if not isinstance(stored.extra.get("learner"), dict) or stored.optimizer is None:
+            raise CheckpointError(weights_only_message(own))
+        differ = network_difference(cfg, stored.cfg)
         if differ:
             key, mine, stored = differ
             raise CheckpointError(f"{own}: {key} is {stored!r} there but {mine!r} in this run's config; "
@@ -225,8 +229,10 @@ def cli(argv: list[str]) -> int:
     summary = finite_json(summary)
     atomic_write_text(summary_file, json.dumps(summary, indent=2))
     print(json.dumps(summary), flush=True)
-    if "error" in summary:  # actors whose episodes kept failing ended the run (final checkpoint written)
-        print(f"error: {summary['error']}; the run stopped after writing its final checkpoint", file=sys.stderr)
+    if "error" in summary:  # actors whose episodes kept failing, or training diverged, ended the run
+        ckpt = Path(summary["checkpoint"])
+        kept = f"last checkpoint: {ckpt}" if ckpt.is_file() else "it wrote no checkpoint"
+        print(f"error: {summary['error']}; the run stopped ({kept})", file=sys.stderr)
         return 2
     return 0
 

@@ -111,25 +111,66 @@ loop.LearnerProcess.train = train
 once it has trained."""
 
 
+def _run_with_hook(tmp_path, hook_source: str, max_trials: int, *extra: str, **env_extra: str):
+    """``python -m launcher --actors 2`` on the tiny config (periodic checkpoints an hour apart)
+    with ``hook_source`` as the sitecustomize of the launcher and every Ray process; returns the
+    completed process and the run directory."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(hook_source)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(hook), str(ROOT)]), **env_extra)
+    run_dir = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "launcher", "--actors", "2", "--config", "tiny", "--run-dir", str(run_dir), "--quiet",
+         "--max-trials", str(max_trials), "--set", "learner.checkpoint_minutes=60", *extra],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+    )
+    return proc, run_dir
+
+
 def test_a_failing_learner_still_lets_the_actors_finish_and_writes_the_final_checkpoint(tmp_path):
     """A learner chunk that raises ends the run with that error, but first the actors finish
     their episodes and the learner writes the final checkpoint (the only one here: periodic
     checkpoints are an hour apart), which counts every committed trial."""
-    hook = tmp_path / "hook"
-    hook.mkdir()
-    (hook / "sitecustomize.py").write_text(FAILING_LEARNER)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(hook), str(ROOT)]))
-    run_dir = tmp_path / "run"
-    proc = subprocess.run(
-        [sys.executable, "-m", "launcher", "--actors", "2", "--config", "tiny", "--run-dir", str(run_dir), "--quiet",
-         "--max-trials", "200", "--set", "learner.checkpoint_minutes=60"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
-    )
+    proc, run_dir = _run_with_hook(tmp_path, FAILING_LEARNER, 200)
     out = proc.stdout + proc.stderr
     assert proc.returncode != 0 and "learner failure for the test" in out, out[-3000:]
     assert "learner: last chunk failed (RayTaskError" in out, out[-3000:]
     ckpt = read_checkpoint(run_dir / "checkpoints" / "latest.pt")
     assert ckpt.step >= 1 and ckpt.extra["replay"]["inserted"] == _committed(run_dir) > 0
+
+
+DIVERGING_LEARNER = """
+import torch
+
+import learner.learner as learner_module
+
+_train = learner_module.Learner.train
+
+
+def train(self, steps, max_seconds=None):
+    if self.stats.steps >= 2:
+        with torch.no_grad():
+            next(self.model.parameters()).fill_(float("nan"))
+    return _train(self, steps, max_seconds)
+
+
+learner_module.Learner.train = train
+"""
+"""A sitecustomize for the launcher and every Ray process it starts: a learner whose weights turn
+non-finite after two steps."""
+
+
+def test_a_run_whose_learner_diverges_ends_with_one_line_and_keeps_finite_weights(tmp_path):
+    """With Ray actors, a learner chunk that diverges ends the run: rc 2, the divergence as the
+    last stderr line and the summary's error, and no checkpoint with non-finite weights."""
+    proc, run_dir = _run_with_hook(tmp_path, DIVERGING_LEARNER, 200)
+    out = proc.stdout + proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode == 2 and "training diverged" in last and "it wrote no checkpoint" in last, out[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert "training diverged" in summary["error"] and summary["trials"] < 200, summary
+    assert not (run_dir / "checkpoints" / "latest.pt").exists(), "the only checkpoint would hold NaN weights"
 
 
 LOST_LEARNER = """
@@ -171,17 +212,9 @@ def test_a_lost_learner_process_restarts_and_the_actors_take_its_new_weights(tmp
     from the initial weights, and the run goes on to its limit; the actors take the restarted
     learner's weights (their numbering: test_learner's after_version test) and the final
     checkpoint counts every committed trial."""
-    hook = tmp_path / "hook"
-    hook.mkdir()
-    (hook / "sitecustomize.py").write_text(LOST_LEARNER)
     lost = tmp_path / "lost_version"
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(hook), str(ROOT)]), LOST_LEARNER_VERSION=str(lost))
-    run_dir = tmp_path / "run"
-    proc = subprocess.run(
-        [sys.executable, "-m", "launcher", "--actors", "2", "--config", "tiny", "--run-dir", str(run_dir), "--quiet",
-         "--max-trials", "60", "--set", "learner.checkpoint_minutes=60", "--set", "learner.insert_lead=4"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
-    )
+    proc, run_dir = _run_with_hook(tmp_path, LOST_LEARNER, 60, "--set", "learner.insert_lead=4",
+                                   LOST_LEARNER_VERSION=str(lost))
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-3000:]
     assert "learner: process lost (" in out and lost.is_file(), out[-3000:]

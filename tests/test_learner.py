@@ -806,3 +806,128 @@ def test_a_resume_can_mend_the_runs_config_with_set(tmp_path):
     for seed in ("replay.seed_from=/elsewhere", "replay={seed_from: /elsewhere}"):  # a resumed run keeps its replay
         with pytest.raises(ConfigError, match="replay.seed_from: a resumed run keeps its replay"):
             resolve(parse_args(["--resume", "--run-dir", str(run), "--set", seed]))
+
+
+def test_a_diverged_learner_stops_and_keeps_the_last_finite_checkpoint(filled_replay, tmp_path, capsys):
+    """A non-finite weight makes the next step's loss and scores non-finite: train() raises before
+    the scores reach the replay, and the checkpoint call that follows (the driver's, at exit)
+    leaves latest.pt with the last finite weights instead of overwriting it."""
+    from common.checkpoint import read_checkpoint
+    from learner.learner import TrainingDivergedError
+    from learner.loop import LearnerProcess, checkpoint_path
+
+    cfg, client = filled_replay
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    proc.learner.train(2)
+    proc.checkpoint(epsilon=0.5, inserted=12)
+    good = checkpoint_path(run).read_bytes()
+    scores = np.concatenate([d["score"] for d in (s.index() for s in client._shards)])
+    with torch.no_grad():
+        next(proc.learner.model.parameters()).fill_(float("inf"))
+    with pytest.raises(TrainingDivergedError, match=r"learner step 3: loss .* not finite"):
+        proc.learner.train(1)
+    assert proc.learner.stats.steps == 2
+    after = np.concatenate([d["score"] for d in (s.index() for s in client._shards)])
+    assert np.array_equal(after, scores), "no score of a diverged step reaches the replay"
+    proc.checkpoint(epsilon=0.5, inserted=12, snapshot=True)
+    assert "weights not finite" in capsys.readouterr().out
+    assert checkpoint_path(run).read_bytes() == good
+    assert not list(checkpoint_path(run).parent.glob("step-*.pt"))
+    kept = read_checkpoint(checkpoint_path(run))
+    assert kept.step == 2 and all(torch.isfinite(v).all() for v in kept.model_state.values() if v.is_floating_point())
+
+
+def test_adam_betas_come_from_the_config_also_on_a_resume(filled_replay, tmp_path):
+    """learner.adam_beta2: 0.999 by default (torch's, the shipped models'), the paper's 0.95 in
+    configs/paper.yaml; a resumed run takes the config's betas, not those stored with Adam's state;
+    a value outside [0, 1) is one line."""
+    from learner.loop import LearnerProcess
+
+    assert load_config("paper").learner.adam_beta2 == 0.95
+    cfg, client = filled_replay
+    assert (cfg.learner.adam_beta1, cfg.learner.adam_beta2) == (0.9, 0.999)
+    run = tmp_path / "run"
+    proc = LearnerProcess(cfg, client._shards, str(run), seed=0, torch_threads=1)
+    assert [g["betas"] for g in proc.learner.optimizer.param_groups] == [(0.9, 0.999)]
+    proc.learner.train(1)
+    proc.checkpoint(epsilon=0.5, inserted=12)
+    paper_betas = copy.deepcopy(cfg)
+    paper_betas.learner.adam_beta2 = 0.95
+    resumed = LearnerProcess(paper_betas, client._shards, str(run), seed=0, torch_threads=1)
+    assert [g["betas"] for g in resumed.learner.optimizer.param_groups] == [(0.9, 0.95)]
+    with pytest.raises(ConfigError, match="learner.adam_beta2"):
+        load_config("tiny", overrides=["learner.adam_beta2=1.0"])
+
+
+def test_resume_from_a_weights_only_checkpoint_is_refused_in_one_line(filled_replay, tmp_path, capsys):
+    """A step-*.pt snapshot copied over latest.pt (a roll-back) holds no learner state or
+    optimiser: --resume says so in one line naming the file (it was a KeyError), files untouched."""
+    import shutil
+
+    from learner.loop import LearnerProcess, checkpoint_path
+    from learner.run import cli, parse_args, resolve
+
+    run = _tiny_run_with_one_trial(tmp_path / "run")
+    cfg, _ = resolve(parse_args(["--resume", "--run-dir", str(run)]))
+    shards = open_local_shards(run / "replay", cfg)
+    LearnerProcess(cfg, shards, str(run), seed=0, torch_threads=1).checkpoint(epsilon=0.5, inserted=1, snapshot=True)
+    ckpt = checkpoint_path(run)
+    shutil.copyfile(ckpt.parent / "step-0000000.pt", ckpt)
+    from common.checkpoint import CheckpointError
+
+    with pytest.raises(CheckpointError, match="extra.learner: missing"):
+        LearnerProcess(cfg, shards, str(run), seed=0, torch_threads=1)
+    for s in shards:
+        s.close()
+    before = _files(run)
+    rc = cli(["--resume", "--run-dir", str(run), "--actors", "0"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and f"{ckpt}: extra.learner: missing (a weights-only file" in err[0], err
+    assert _files(run) == before
+
+
+def test_a_torn_last_progress_line_stays_alone_on_its_line(tmp_path):
+    """A part killed in the middle of a progress.jsonl line: the resumed part's lines start on a
+    line of their own, so every line but the torn one still parses."""
+    from learner.loop import Progress
+
+    cfg = load_config("tiny")
+    log = tmp_path / "progress.jsonl"
+    log.write_text('{"time": 1.0}\n{"time": 2.')
+    progress = Progress(cfg, tmp_path, quiet=True)
+    progress.tick(5, {"steps": 1, "samples": 8, "version": 1, "loss": 0.5}, 0.5, force=True)
+    progress.close()
+    lines = log.read_text().splitlines()
+    assert lines[:2] == ['{"time": 1.0}', '{"time": 2.'] and len(lines) == 3
+    assert json.loads(lines[2])["learner_steps"] == 1
+
+
+def test_a_local_run_whose_training_diverges_ends_with_one_line(tmp_path, capsys, monkeypatch):
+    """--actors 0: the learner's weights turn non-finite after its first steps; the run stops with
+    the divergence as its error (rc 2, one line on stderr) and latest.pt keeps finite weights."""
+    from common.checkpoint import read_checkpoint
+    from learner.learner import Learner as Plain
+    from learner.loop import checkpoint_path
+    from learner.run import cli
+
+    train = Plain.train
+
+    def diverging(self, steps, max_seconds=None):
+        if self.stats.steps >= 2:
+            with torch.no_grad():
+                next(self.model.parameters()).fill_(float("nan"))
+        return train(self, steps, max_seconds)
+
+    monkeypatch.setattr(Plain, "train", diverging)
+    run = tmp_path / "run"
+    rc = cli(["--config", "tiny", "--run-dir", str(run), "--actors", "0", "--max-trials", "40", "--quiet",
+              "--set", "learner.min_replay=2", "--set", "learner.checkpoint_minutes=0.001"])
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "training diverged" in err[0] and "last checkpoint:" in err[0], err
+    assert "weights not finite" in captured.out
+    summary = json.loads((run / "summary.json").read_text())
+    assert "training diverged" in summary["error"] and summary["trials"] < 40
+    kept = read_checkpoint(checkpoint_path(run))
+    assert kept.step >= 2 and all(torch.isfinite(v).all() for v in kept.model_state.values() if v.is_floating_point())
