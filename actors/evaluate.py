@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import sys
@@ -353,12 +354,7 @@ def _calibration(args, plan: EvalPlan, version: int) -> Calibration:
     # scene's object is the first of the pile of the same seed), so shared seeds leak whatever the kind.
     if data.get("objects") == plan.objects:
         evaluated = {episode_seed(plan.seed, e) for e in range(plan.episodes)}
-        episodes = data.get("episode_results")
-        fitted = set()
-        for n, record in enumerate(episodes if isinstance(episodes, list) else []):
-            if not isinstance(record, dict) or not isinstance(record.get("scene_seed"), int):
-                raise EvaluationError(f"{path}: episode_results[{n}]: scene_seed: missing or not an integer")
-            fitted.add(record["scene_seed"])
+        fitted = {record["scene_seed"] for record in data["episode_results"]}  # checked by read_result
         if fitted & evaluated:
             raise EvaluationError(
                 f"{path}: scene_seeds: the calibration trials share {len(fitted & evaluated)} scenes with this "
@@ -775,11 +771,12 @@ def table_markdown(results: list[tuple[str, dict]], runs: bool = False) -> str:
 
 
 _REQUIRED = ("format", "policy", "scene", "objects", "objects_label", "grippers_label", "grippers", "cameras", "rate",
-             "episodes", "seed", "scene_seeds", "average", "per_gripper")
+             "episodes", "seed", "scene_seeds", "average", "per_gripper", "episode_results")
 
 _TYPES = {
     "rate": ((int, float), "a number"), "episodes": (int, "an integer"), "cameras": (int, "an integer"),
     "average": (dict, "an object"), "per_gripper": (dict, "an object"), "scene_seeds": (list, "a list"),
+    "episode_results": (list, "a list"),
 }
 """Keys of a result whose value a reader computes with: the JSON type each must have, in words."""
 
@@ -811,6 +808,21 @@ def read_result(path: str | Path) -> dict:
         raise EvaluationError(f"{path}: policy: expected one of {list(POLICIES)}, got {data['policy']!r}")
     if data["scene"] not in SCENE_KINDS:
         raise EvaluationError(f"{path}: scene: expected one of {list(SCENE_KINDS)}, got {data['scene']!r}")
+    if not math.isfinite(data["rate"]):
+        raise EvaluationError(f"{path}: rate: expected a finite number, got {data['rate']!r}")
+    counted = [("average", data["average"])] + [(f"per_gripper.{k}", v) for k, v in data["per_gripper"].items()]
+    for where, entry in counted:
+        for key in ("attempts", "successes"):
+            value = entry.get(key) if isinstance(entry, dict) else None
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise EvaluationError(f"{path}: {where}.{key}: expected a count, got {value!r:.60}")
+    for n, e in enumerate(data["episode_results"]):
+        if not isinstance(e, dict):
+            raise EvaluationError(f"{path}: episode_results[{n}]: expected an object, got {e!r:.60}")
+        if isinstance(e.get("scene_seed"), bool) or not isinstance(e.get("scene_seed"), int):
+            raise EvaluationError(f"{path}: episode_results[{n}]: scene_seed: missing or not an integer")
+        if "objects" not in e:
+            raise EvaluationError(f"{path}: episode_results[{n}]: objects: missing")
     return data
 
 
@@ -904,8 +916,8 @@ def _table_parser() -> argparse.ArgumentParser:
 def evaluate(argv: list[str]) -> dict:
     """Parse ``argv``, run the evaluation, write --json / --md; returns the summary."""
     args = _parser().parse_args(argv)
-    check_output_path("--json", args.json, [args.calibration])
-    check_output_path("--md", args.md, [args.calibration, args.json])
+    check_output_path("--json", args.json, [args.checkpoint, args.calibration])
+    check_output_path("--md", args.md, [args.checkpoint, args.calibration, args.json])
     t0 = time.perf_counter()
     plan = make_plan(args)
     results = run_units(plan, plan.units(), actors=args.actors, address=args.address, quiet=args.quiet)
@@ -1011,7 +1023,8 @@ def cli(argv: list[str]) -> int:
     print(
         f"evaluate: {row_label(summary)} on {summary['scene']} {summary['objects_label']}/{summary['grippers_label']} "
         f"({summary['cameras']} camera(s), {summary['episodes']} episodes, seed {summary['seed']}): "
-        f"rate {_fmt(summary['rate'])} ({summary['average']['successes']}/{summary['average']['attempts']} grasps); "
+        f"rate {_fmt(summary['rate'])} ({summary['average']['rate_definition']}; "
+        f"{summary['average']['successes']}/{summary['average']['attempts']} grasps); "
         f"{per}; {summary['wall_s']:.1f} s"
     )
     return 0

@@ -144,7 +144,8 @@ def run(args) -> dict:
         raise ValueError(f"--png {png_dir}: exists and is not a folder")
     from actors.evaluate import check_output_path  # imported here: actors.evaluate builds on this module
 
-    check_output_path("--json", args.json)  # written after every episode: refuse an unwritable one first
+    weights = [args.policy[len("checkpoint:"):]] if args.policy.startswith("checkpoint:") else []
+    check_output_path("--json", args.json, weights)  # written after every episode: refuse an unwritable one first
     if png_dir is not None:
         png_dir.mkdir(parents=True, exist_ok=True)
     trials, successes, times = 0, 0, []

@@ -456,6 +456,13 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
     no_scenes = tmp_path / "no_scenes.json"
     no_scenes.write_text(json.dumps({k: v for k, v in single.items() if k != "scene_seeds"}))
     seeds_number = relabel(single, tmp_path, "seeds_number", scene_seeds=3)
+    nan_rate = relabel(single, tmp_path, "nan_rate", rate=float("nan"))
+    no_attempts = relabel(single, tmp_path, "no_attempts", average={"successes": 1})
+    gripper_counts = relabel(single, tmp_path, "gripper_counts", per_gripper={GRIPPER: {"attempts": "3"}})
+    no_episodes = tmp_path / "no_episodes.json"
+    no_episodes.write_text(json.dumps({k: v for k, v in single.items() if k != "episode_results"}))
+    bare_episode = relabel(single, tmp_path, "bare_episode", episode_results=[{"scene_seed": 1}])
+    seedless = relabel(single, tmp_path, "seedless", episode_results=[{"objects": [], "scene_seed": True}])
     md = tmp_path / "never.md"
     for files, needle in (([single_path, dup], "the same cell is already in"), ([bad], "not valid JSON"),
                           ([old], "format: expected"), ([tmp_path / "gone.json"], "gone.json: file not found"),
@@ -463,7 +470,13 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
                           ([list_average], "list_average.json: average: expected an object, got []"),
                           ([no_objects], "no_objects.json: objects: missing"),
                           ([no_scenes], "no_scenes.json: scene_seeds: missing"),
-                          ([seeds_number], "seeds_number.json: scene_seeds: expected a list, got 3")):
+                          ([seeds_number], "seeds_number.json: scene_seeds: expected a list, got 3"),
+                          ([nan_rate], "nan_rate.json: rate: expected a finite number, got nan"),
+                          ([no_attempts], "no_attempts.json: average.attempts: expected a count, got None"),
+                          ([gripper_counts], f"gripper_counts.json: per_gripper.{GRIPPER}.attempts: expected a count"),
+                          ([no_episodes], "no_episodes.json: episode_results: missing"),
+                          ([bare_episode], "bare_episode.json: episode_results[0]: objects: missing"),
+                          ([seedless], "seedless.json: episode_results[0]: scene_seed: missing or not an integer")):
         assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and needle in err
@@ -684,3 +697,29 @@ def test_calibrated_adagrasp_on_ray_actors(small, calibration_run, tmp_path):
     trials = [[(t["gripper"], t["action"], t["success"]) for r in res["episode_results"] for t in r["trials"]] for res in runs]
     assert trials[0] == trials[1] and {g for g, _, _ in trials[0]} == {OTHER}
     assert runs[1]["actors"] == 2 and runs[1]["calibration"] == runs[0]["calibration"]
+
+
+@pytest.mark.parametrize("flag", ["--json", "--md"])
+def test_an_output_over_the_checkpoint_is_refused_in_one_line(tmp_path, capsys, flag):
+    """--json or --md naming the --checkpoint being evaluated would replace the weights with the
+    result: refused before anything runs (the check does not read the file), which is unchanged."""
+    ckpt = tmp_path / "latest.pt"
+    ckpt.write_bytes(b"weights")
+    argv = ["--scene", "single", "--objects", "train", "--grippers", GRIPPER, "--episodes", "1",
+            "--policy", "fix-gripper", "--checkpoint", str(ckpt), "--quiet", flag, str(ckpt)]
+    if flag == "--md":
+        argv += ["--json", str(tmp_path / "r.json")]
+    assert ev.cli(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{flag} {ckpt}: is one of this command's input files" in err, err
+    assert ckpt.read_bytes() == b"weights"
+
+
+def test_summary_line_says_how_its_rate_is_made(tmp_path, capsys):
+    """A per-gripper policy's headline is the mean of the per-gripper rates, which need not equal
+    the pooled successes / attempts printed beside it: the line says which it is."""
+    rc, result, _ = run_cli(["--scene", "single", "--objects", "train", "--grippers", f"{GRIPPER},{OTHER}",
+                             "--episodes", "1", "--policy", "heuristic"], tmp_path)
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    pooled = f"{result['average']['successes']}/{result['average']['attempts']} grasps"
+    assert rc == 0 and f"rate {result['rate']:.3f} (mean of per-gripper rates; {pooled})" in line, line

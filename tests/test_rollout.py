@@ -177,3 +177,22 @@ def test_rollout_bad_input_is_one_line(tmp_path, capsys, extra, needle):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and needle in err, err
     assert not out.exists() or out.read_text() == "mine", "nothing is written on bad input"
+
+
+def test_json_over_the_checkpoint_it_reads_is_refused_in_one_line(tmp_path, capsys):
+    """--json naming the checkpoint of --policy checkpoint:PATH would replace the weights with the
+    summary: refused before any episode, the file unchanged."""
+    from common.checkpoint import save_checkpoint
+    from common.config import load_config
+    from common.network import build_model
+
+    small = ["model.channels=4", "model.rotations=4", "grippers.eval_openings=[0.75,1.0]"]
+    cfg = load_config("default", small)
+    ckpt = save_checkpoint(tmp_path / "m.pt", build_model(cfg), cfg)
+    before = ckpt.read_bytes()
+    argv = ["--gripper", GRIPPER, "--policy", f"checkpoint:{ckpt}", "--mode", "fix-config", "--episodes", "1",
+            "--json", str(ckpt)] + [a for kv in small for a in ("--set", kv)]
+    assert cli(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"--json {ckpt}: is one of this command's input files" in err, err
+    assert ckpt.read_bytes() == before
