@@ -45,6 +45,7 @@ from common.geometry import Transform
 from common.gripper import (
     GripperModel,
     GripperSpec,
+    GripperSpecError,
     aperture_from_points,
     joint_positions,
     scaled_urdf,
@@ -81,12 +82,14 @@ def mounted_urdf(spec: GripperSpec, scale: float, visual_from_collision: bool = 
     children = {j.find("child").get("link") for j in robot.findall("joint")}
     roots = [link.get("name") for link in robot.findall("link") if link.get("name") not in children]
     if len(roots) != 1:
-        raise RuntimeError(f"{spec.spec_path}: the processed URDF {scaled} has root links {roots}, not one")
+        raise GripperSpecError(
+            f"{spec.spec_path}: the processed URDF of {spec.urdf.name} has root links {roots}, not one"
+        )
     names = {link.get("name") for link in robot.findall("link")} | {j.get("name") for j in robot.findall("joint")}
     arm_links = ("arm_world",) + tuple(f"{j}_link" for j in ARM_JOINTS)
     clash = sorted(names & ({"arm_mount", *ARM_JOINTS, *arm_links}))
     if clash:
-        raise RuntimeError(f"{spec.spec_path}: URDF names {clash} clash with the virtual arm's")
+        raise GripperSpecError(f"{spec.spec_path}: URDF names {clash} clash with the virtual arm's")
     links, joints = [], []
     parent = "arm_world"
     axes = {"arm_x": "1 0 0", "arm_y": "0 1 0", "arm_z": "0 0 1", "arm_yaw": "0 0 1"}
@@ -139,10 +142,15 @@ class BulletGripper:
         with tempfile.TemporaryDirectory(prefix="adagrasp-gripper-") as folder:
             urdf = Path(folder) / "gripper.urdf"
             urdf.write_text(text)
-            self.body_id = p.loadURDF(str(urdf), [0, 0, 0], useFixedBase=True,
-                                      flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+            try:
+                self.body_id = p.loadURDF(str(urdf), [0, 0, 0], useFixedBase=True,
+                                          flags=p.URDF_USE_INERTIA_FROM_FILE, physicsClientId=client)
+            except p.error:  # PyBullet raises rather than returning a negative id
+                self.body_id = -1
         if self.body_id < 0:
-            raise RuntimeError(f"{spec.spec_path}: PyBullet could not load {spec.urdf.name} mounted at scale {scale}")
+            raise GripperSpecError(
+                f"{spec.spec_path}: PyBullet could not load {spec.urdf.name} mounted at scale {scale}"
+            )
         self._joint: dict[str, int] = {}
         self._link: dict[str, int] = {}
         for i in range(p.getNumJoints(self.body_id, physicsClientId=client)):
@@ -151,7 +159,7 @@ class BulletGripper:
             self._link[info[12].decode()] = i
         missing = [j for j in spec.joint_names if j not in self._joint]
         if missing:
-            raise RuntimeError(f"{spec.spec_path}: joints {missing} missing from the loaded body")
+            raise GripperSpecError(f"{spec.spec_path}: joints {missing} missing from the loaded body")
         self._arm = [self._joint[n] for n in ARM_JOINTS]
         self._tcp_link = self._link[f"{ARM_JOINTS[-1]}_link"]
         # no velocity damping (PyBullet's default 0.04 applies to the whole multibody, arm included)

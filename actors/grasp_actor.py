@@ -86,7 +86,7 @@ class GraspActor:
         seq = np.random.SeedSequence([int(seed), self.actor_id] + ([int(stream)] if stream else []))
         self.seed_sequence = seq
         self.rng = np.random.default_rng(seq)
-        self.sim = Simulation(cfg, seed=int(seq.generate_state(1)[0]))
+        self.two_finger, self.multi_finger = split_grippers(cfg)  # before the physics client: it may raise
         self.replay = replay
         # each episode draws its scale and openings from continuous ranges, so an encoding is never
         # asked for twice: kept in memory only (on disk they grew by 6 never-read files an episode)
@@ -94,7 +94,7 @@ class GraspActor:
         self.model = build_model(cfg).eval()
         self.version = -1
         self.episode = int(first_episode)
-        self.two_finger, self.multi_finger = split_grippers(cfg)
+        self.sim = Simulation(cfg, seed=int(seq.generate_state(1)[0]))
 
     def set_weights(self, version: int, state: dict) -> None:
         """Load weights ``version`` (ignored if not newer than the loaded one)."""

@@ -163,7 +163,11 @@ class Simulation:
         self.client = pybullet.connect(pybullet.GUI if gui else pybullet.DIRECT)
         if self.client < 0:
             raise SimulationError("pybullet.connect: could not start a physics client")
-        self._build_world()
+        try:
+            self._build_world()
+        except BaseException:  # the object never reaches its owner, whose close() would disconnect it
+            self.close()
+            raise
 
     # ---------------------------------------------------------------- world
 

@@ -415,6 +415,8 @@ def load_spec(path: str | Path) -> GripperSpec:
         if not isinstance(d, dict) or set(d) - {"name", "open", "closed"} or "name" not in d:
             raise GripperSpecError(f"{where}: expected {{name, open, closed}}, got {d!r}")
         jn = d["name"]
+        if not isinstance(jn, str):
+            raise GripperSpecError(f"{where}.name: expected a joint name, got {jn!r}")
         if jn not in table:
             raise GripperSpecError(f"{where}.name: joint {jn!r} does not exist below {cut_link} in {source.name}")
         if jn not in movable:
@@ -442,6 +444,8 @@ def load_spec(path: str | Path) -> GripperSpec:
         if not isinstance(c, dict) or set(c) - {"joint", "driver", "multiplier", "offset", "mode"} or not {"joint", "driver"} <= set(c):
             raise GripperSpecError(f"{where}: expected {{joint, driver, multiplier, offset, mode}}, got {c!r}")
         for key in ("joint", "driver"):
+            if not isinstance(c[key], str):
+                raise GripperSpecError(f"{where}.{key}: expected a joint name, got {c[key]!r}")
             if c[key] not in movable:
                 raise GripperSpecError(f"{where}.{key}: joint {c[key]!r} does not exist or is not movable in {source.name}")
         mode = c.get("mode", "mimic")

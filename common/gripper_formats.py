@@ -20,6 +20,8 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
+import os
+import uuid
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -234,6 +236,9 @@ def extract_subtree(robot: ET.Element, base_link: str) -> ET.Element:
     while stack:
         for j in children.get(stack.pop(), []):
             child = j.find("child").get("link")
+            if child in keep_links:  # a tree reaches every link once
+                raise FormatError(f"joint {j.get('name')!r}: link {child!r} is reached twice below {base_link!r} "
+                                  "(a closed chain or a link with two parents; URDF describes trees)")
             keep_joints.append(j.get("name"))
             keep_links.append(child)
             stack.append(child)
@@ -300,8 +305,21 @@ def resolve_mesh_path(filename: str, source: Path) -> Path:
     raise FormatError(f"mesh {filename!r} not found next to {source.name} or in any parent package folder")
 
 
+def _binary_stl(path: Path) -> bool:
+    """True for a binary STL (84 header bytes and 50 per triangle, as its count says): PyBullet
+    reads those, while an ASCII STL loads there as a 2 mm box without an error."""
+    size = path.stat().st_size
+    if size < 84:
+        return False
+    with open(path, "rb") as f:
+        f.seek(80)
+        triangles = int.from_bytes(f.read(4), "little")
+    return size == 84 + 50 * triangles
+
+
 def resolve_meshes(robot: ET.Element, source: Path, mesh_cache: Path) -> None:
-    """Make mesh filenames absolute in place; convert formats PyBullet cannot read to OBJ in ``mesh_cache``."""
+    """Make mesh filenames absolute in place; convert formats PyBullet cannot read (all but OBJ and
+    binary STL) to OBJ in ``mesh_cache``."""
     import trimesh
 
     for mesh in robot.iter("mesh"):
@@ -309,7 +327,7 @@ def resolve_meshes(robot: ET.Element, source: Path, mesh_cache: Path) -> None:
         if not fn:
             raise FormatError("a <mesh> has no filename")
         path = resolve_mesh_path(fn, source)
-        if path.suffix.lower() not in (".obj", ".stl"):
+        if path.suffix.lower() != ".obj" and not (path.suffix.lower() == ".stl" and _binary_stl(path)):
             digest = hashlib.sha1(str(path).encode() + str(path.stat().st_mtime_ns).encode()).hexdigest()[:16]
             out = mesh_cache / f"{path.stem}-{digest}.obj"
             if not out.exists():
@@ -318,7 +336,7 @@ def resolve_meshes(robot: ET.Element, source: Path, mesh_cache: Path) -> None:
                 except Exception as e:  # noqa: BLE001 - any loader failure is reported as one line
                     raise FormatError(f"mesh {fn!r} cannot be read ({type(e).__name__}: {e})") from None
                 mesh_cache.mkdir(parents=True, exist_ok=True)
-                tmp = out.with_suffix(".tmp.obj")
+                tmp = out.with_name(f"{out.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp.obj")  # one per writer
                 tm.export(tmp)
                 tmp.replace(out)
             path = out

@@ -3,6 +3,8 @@ label and the opening it executed."""
 
 from __future__ import annotations
 
+import pytest
+
 import actors.grasp_actor as grasp_actor
 from common.config import load_config
 
@@ -48,3 +50,15 @@ def test_stored_trial_is_the_attempt_that_ran(monkeypatch, tmp_path):
     assert not list((tmp_path / "cache").rglob("*.npy"))
     # nor is a URDF at the episode's scale (with or without the arm): only the processed ones stay
     assert {f.name for f in (tmp_path / "cache" / "grippers").rglob("*.urdf")} == {"gripper.urdf"}
+
+
+def test_an_actor_whose_grippers_cannot_be_chosen_opens_no_physics_client(monkeypatch):
+    """A train_grippers selection that fails raises before the actor's Simulation (a PyBullet
+    client that nothing would close) is made."""
+    made = []
+    monkeypatch.setattr(grasp_actor, "Simulation", lambda *args, **kwargs: made.append(args))
+    cfg = load_config("tiny")
+    cfg.grippers.train_grippers = "no_such_gripper"
+    with pytest.raises(ValueError, match="no_such_gripper"):
+        grasp_actor.GraspActor(cfg, actor_id=0, seed=0, replay=_Recorder())
+    assert made == []

@@ -382,9 +382,80 @@ def test_link_named_like_the_virtual_arm_is_refused(tmp_path, client):
     urdf.write_text(Path(data["source"]).read_text().replace('"palm"', '"arm_world"'))
     data["source"], data["cut_link"] = str(urdf), "arm_world"
     f = _write(tmp_path, data, "clash.yaml")
-    with pytest.raises(RuntimeError) as e:
+    with pytest.raises(GripperSpecError) as e:
         BulletGripper(client, load_spec(f), 1.0)
     _one_line(e, "clash.yaml", "arm_world", "virtual arm")
+
+
+def test_a_urdf_pybullet_cannot_load_is_one_line_naming_the_spec(tmp_path, client, monkeypatch):
+    """PyBullet raises (rather than returning a negative id) when it cannot load the mounted URDF:
+    one line naming the spec, which `grippers check` reports as a reason instead of a traceback."""
+    from actors import bullet_gripper
+    from actors.gripper_cli import check_gripper
+
+    def refuse(*args, **kwargs):
+        raise p.error("Cannot load URDF file.")
+
+    monkeypatch.setattr(bullet_gripper.p, "loadURDF", refuse)
+    spec = get_gripper("parallel_jaw-0")
+    with pytest.raises(GripperSpecError) as e:
+        BulletGripper(client, spec, 1.0)
+    _one_line(e, str(spec.spec_path), "PyBullet could not load")
+    report = check_gripper(spec)
+    assert not report.passed and any("PyBullet could not load" in r for r in report.reasons), report.reasons
+
+
+def test_a_closed_chain_in_the_urdf_is_one_line(tmp_path):
+    """A joint whose child is already in the tree (here the palm again) made the subtree walk loop
+    for ever; URDF describes trees."""
+    data = _base(tmp_path)
+    urdf = tmp_path / "loop.urdf"
+    loop = '<joint name="back" type="fixed"><parent link="finger_left"/><child link="palm"/></joint></robot>'
+    urdf.write_text(Path(data["source"]).read_text().replace("</robot>", loop))
+    data["source"] = str(urdf)
+    f = _write(tmp_path, data, "loop.yaml")
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), "'back'", "reached twice")
+
+
+@pytest.mark.parametrize("field, change", [
+    ("drive_joints[0].name", lambda d: d["drive_joints"][0].update(name=["finger_left_joint"])),
+    ("couplings[0].driver", lambda d: d.update(couplings=[{"joint": "finger_right_joint", "driver": ["x"]}])),
+])
+def test_a_list_where_a_joint_name_belongs_is_one_line(tmp_path, field, change):
+    data = _base(tmp_path)
+    change(data)
+    f = _write(tmp_path, data)
+    with pytest.raises(GripperSpecError) as e:
+        load_spec(f)
+    _one_line(e, str(f), field, "expected a joint name")
+
+
+def test_an_ascii_stl_mesh_reaches_pybullet_as_its_shape(tmp_path, client):
+    """PyBullet reads binary STL but loads an ASCII STL as a 2 mm box without an error: ASCII STL
+    is converted to OBJ like other formats, binary STL is used as it is."""
+    import xml.etree.ElementTree as ET
+
+    import trimesh
+
+    from common.gripper_formats import resolve_meshes
+
+    box = trimesh.creation.box((0.02, 0.02, 0.05))
+    (tmp_path / "ascii.stl").write_text(trimesh.exchange.stl.export_stl_ascii(box))
+    (tmp_path / "binary.stl").write_bytes(trimesh.exchange.stl.export_stl(box))
+    robot = ET.fromstring('<robot name="r"><link name="a"><collision><geometry><mesh filename="ascii.stl"/>'
+                          '</geometry></collision><visual><geometry><mesh filename="binary.stl"/></geometry>'
+                          '</visual></link></robot>')
+    resolve_meshes(robot, tmp_path / "r.urdf", tmp_path / "cache")
+    ascii_mesh, binary_mesh = (Path(m.get("filename")) for m in robot.iter("mesh"))
+    assert ascii_mesh.suffix == ".obj" and ascii_mesh.parent == tmp_path / "cache"
+    assert binary_mesh == tmp_path / "binary.stl"
+    for mesh in (ascii_mesh, binary_mesh):
+        shape = p.createCollisionShape(p.GEOM_MESH, fileName=str(mesh), physicsClientId=client)
+        body = p.createMultiBody(0.0, shape, physicsClientId=client)
+        lo, hi = p.getAABB(body, physicsClientId=client)
+        assert np.allclose(np.subtract(hi, lo), (0.02, 0.02, 0.05), atol=0.006), (mesh, lo, hi)  # + AABB margin
 
 
 def test_unknown_joint_names_file_and_field(tmp_path):

@@ -208,3 +208,18 @@ def test_bad_config_value_fails_in_one_line(default_cfg):
     with pytest.raises(ConfigError) as info:
         Simulation(cfg, seed=0)
     assert "sim.lift_to" in _one_line(info.value)
+
+
+def test_a_world_that_fails_to_build_leaves_no_client_connected(default_cfg, monkeypatch):
+    """An error while the world is built (the constructor never returns, so no close() of its
+    owner can run) disconnects the physics client it had connected."""
+    clients = []
+
+    def failing(self):
+        clients.append(self.client)
+        raise RuntimeError("world build failure for the test")
+
+    monkeypatch.setattr(Simulation, "_build_world", failing)
+    with pytest.raises(RuntimeError, match="world build failure"):
+        Simulation(default_cfg, seed=0)
+    assert len(clients) == 1 and clients[0] >= 0 and not pybullet.isConnected(physicsClientId=clients[0])
