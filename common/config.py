@@ -554,6 +554,10 @@ def _cross_checks(cfg: Config, source: str | typing.Callable[[tuple[str, ...]], 
         if abs(cells - round(cells)) > 1e-6:
             fail("scene_grid.voxel_size", f"{cfg.scene_grid.voxel_size} does not divide {axis}_range {(lo, hi)}",
                  f"scene_grid.{axis}_range")
+    nx, ny = (round((hi - lo) / cfg.scene_grid.voxel_size) for lo, hi in (cfg.scene_grid.x_range, cfg.scene_grid.y_range))
+    if nx != ny:
+        fail("scene_grid.y_range", f"{ny} cells, but x_range has {nx}: the grid must be square in x and y (the "
+             "network and the augmentation rotate it in place)", "scene_grid.x_range")
     for name, size in (("scene_grid", cfg.scene_grid.voxel_size), ("gripper_grid", cfg.gripper_grid.voxel_size)):
         ratio = cfg.model.feature_cell / size
         if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:

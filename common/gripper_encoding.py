@@ -229,7 +229,7 @@ def _grid_tag(grid: GripperGridConfig) -> str:
     return "g{}x{}x{}_v{:.5f}_h{:.5f}_t{:.3f}".format(*grid.shape, grid.voxel_size, grid.tcp_height, grid.truncation_voxels)
 
 
-def _spec_tag(spec: GripperSpec) -> str:
+def spec_tag(spec: GripperSpec) -> str:
     """Identity of a gripper's geometry and TCP: processed URDF folder (content hash) + TCP fields."""
     text = f"{ENCODING_VERSION}|{spec.urdf}|{spec.tcp_position}|{spec.approach_axis}|{spec.closing_axis}"
     text += "|" + "|".join(f"{d.name}:{d.open}:{d.closed}" for d in spec.drive_joints)
@@ -254,7 +254,7 @@ class GripperEncoder:
         self._fields: OrderedDict[str, _GripperField] = OrderedDict()
 
     def _field(self, spec: GripperSpec) -> _GripperField:
-        key = _spec_tag(spec)
+        key = spec_tag(spec)
         if key not in self._fields:
             self._fields[key] = _GripperField(spec, self.grid)
             while len(self._fields) > 8:
@@ -264,7 +264,7 @@ class GripperEncoder:
 
     def _one(self, spec: GripperSpec, scale: float, opening: float) -> np.ndarray:
         """(gX, gY, gZ) float32 TSDF / truncation at one opening (cached)."""
-        tag = _spec_tag(spec)
+        tag = spec_tag(spec)
         key = (tag, round(float(scale), 6), round(float(opening), 6))
         hit = self._memory.get(key)
         if hit is not None:

@@ -111,28 +111,40 @@ class NetworkConfigError(ValueError):
 
 class _Conv3dChunkedWeightGrad(torch.autograd.Function):
     """``F.conv3d(x, weight, None, stride, padding)`` whose weight gradient is summed over
-    chunks of ``chunk`` samples (see ``_WGRAD_MAX_ELEMENTS``); the input gradient is one call."""
+    chunks of ``chunk`` samples (see ``_WGRAD_MAX_ELEMENTS``); the input gradient is one call.
+
+    Under CPU autocast (``learner.precision=bf16``) it does what autocast does for a convolution:
+    input and weight are cast to the autocast dtype, which the backward pass computes in; the
+    weight gradient is summed in float32 and both gradients come back in their inputs' dtypes."""
 
     @staticmethod
     def forward(ctx, x, weight, stride, padding, chunk):
+        ctx.dtypes = (x.dtype, weight.dtype)
+        if torch.is_autocast_enabled("cpu"):
+            low = torch.get_autocast_dtype("cpu")
+            x, weight = x.to(low), weight.to(low)
         ctx.save_for_backward(x, weight)
         ctx.conf = (list(stride), list(padding), int(chunk))
-        return F.conv3d(x, weight, None, stride, padding)
+        with torch.autocast("cpu", enabled=False):
+            return F.conv3d(x, weight, None, stride, padding)
 
     @staticmethod
     def backward(ctx, grad_out):
         x, weight = ctx.saved_tensors
         stride, padding, chunk = ctx.conf
+        grad_out = grad_out.to(x.dtype)
         args = (None, stride, padding, [1, 1, 1], False, [0, 0, 0], 1)
         grad_x = grad_w = None
         if ctx.needs_input_grad[0]:
             grad_x = torch.ops.aten.convolution_backward(grad_out, x, weight, *args, [True, False, False])[0]
+            grad_x = grad_x.to(ctx.dtypes[0])
         if ctx.needs_input_grad[1]:
             for i in range(0, x.shape[0], chunk):
                 part = torch.ops.aten.convolution_backward(
                     grad_out[i : i + chunk], x[i : i + chunk], weight, *args, [False, True, False]
-                )[1]
+                )[1].to(torch.promote_types(ctx.dtypes[1], torch.float32))
                 grad_w = part if grad_w is None else grad_w.add_(part)
+            grad_w = grad_w.to(ctx.dtypes[1])
         return grad_x, grad_w, None, None, None
 
 

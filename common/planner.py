@@ -33,7 +33,7 @@ from common.camera import Intrinsics
 from common.config import Config
 from common.geometry import Transform
 from common.gripper import GripperModel, GripperSpec, get_gripper
-from common.gripper_encoding import GripperEncoder, gripper_key
+from common.gripper_encoding import GripperEncoder, gripper_key, spec_tag
 from common.network import AdaGraspNet
 from common.observation import Observation
 from common.policy import grasp_pose, valid_cells
@@ -157,14 +157,18 @@ class GraspPlanner:
             )
         arrays = []
         for n, d in enumerate(depths):
-            d = np.asarray(d, dtype=np.float32)
+            d = np.asarray(d)
+            if not np.issubdtype(d.dtype, np.floating):  # e.g. uint16 millimetres, read as metres
+                raise PlannerError(f"depths[{n}]: expected float metres, got dtype {d.dtype} (millimetres: depth / 1000.0)")
+            d = d.astype(np.float32, copy=False)
             if d.ndim != 2:
                 raise PlannerError(f"depths[{n}]: expected an (H, W) image in metres, got shape {d.shape}")
             arrays.append(d)
         cameras = [(_as_camera(k, d, n), _as_pose(t, n)) for n, (k, d, t) in enumerate(zip(intrinsics, arrays, camera_poses))]
         masks = None
         if obstacle_masks is not None:
-            masks = [np.asarray(m, dtype=bool) for m in obstacle_masks]
+            one = isinstance(obstacle_masks, np.ndarray) and obstacle_masks.ndim == 2
+            masks = [np.asarray(m, dtype=bool) for m in ([obstacle_masks] if one else obstacle_masks)]
             if len(masks) != len(arrays) or any(m.shape != d.shape for m, d in zip(masks, arrays)):
                 raise PlannerError("obstacle_masks: expected one (H, W) mask per depth image, of its shape")
         return fuse_observation(self.cfg.scene_grid, arrays, cameras, masks)
@@ -201,7 +205,9 @@ class GraspPlanner:
         specs = self._grippers(grippers)
         obs = self.observe(depths, intrinsics, camera_poses, obstacle_masks)
         encodings = [self.encoder.encode(spec, scale, openings) for spec, scale in specs]
-        keys = [gripper_key(spec.name, scale, openings) for spec, scale in specs]
+        # the model's kernel cache is keyed by geometry, not name: an edited spec, or another spec
+        # of the same name, gets kernels of its own
+        keys = [gripper_key(spec_tag(spec), scale, openings) for spec, scale in specs]
         scene = torch.from_numpy(np.stack([obs.tsdf, obs.obstacle]))
         probs = self.model.predict(scene, [torch.from_numpy(e) for e in encodings], keys).cpu().numpy()
         if calibration is not None:

@@ -62,6 +62,7 @@ def test_unknown_key_is_one_line_naming_it():
         ("model.gripper_widths=[16, 0]", "model.gripper_widths"),
         ("model.feature_cell=.nan", "model.feature_cell"),
         ("scene_grid.x_range=[.nan, 0.1]", "scene_grid.x_range"),
+        ("scene_grid.y_range=[-0.096, 0.096]", "scene_grid.y_range: 48 cells, but x_range has 96"),
         ("learner.samples_per_insert=0", "learner.samples_per_insert"),
         ("gripper_grid.tcp_height=-5", "gripper_grid.tcp_height"),
         ("gripper_grid.tcp_height=0.2", "gripper_grid.tcp_height"),

@@ -513,3 +513,33 @@ def test_checkpoints_run_with_batching_chosen_for_the_device(tmp_path):
         assert float((other.predict(scene, [grip]) - reference).abs().max()) <= 1e-5
     with pytest.raises(ValueError, match="scene_chunk"):
         load_checkpoint(tmp_path / "c.pt", scene_chunk=-1)
+
+
+def test_chunked_weight_gradient_under_bf16_autocast_matches_the_plain_convolution(monkeypatch):
+    """learner.precision=bf16 on the CPU at paper scale takes the chunked weight-gradient path
+    (its saved float32 input met a bfloat16 gradient: a dtype error at the first step). Under
+    autocast it computes what the plain convolution computes, up to bfloat16 rounding, and the
+    weights' gradients stay float32."""
+    import common.network as network
+
+    cfg, model = small_model("model.rotations=8", seed=3)
+    model.train()
+    scenes = torch.cat([random_scene(cfg, s) for s in range(3)])
+    grippers = random_gripper(cfg, 3, 4)
+    k, action, label = torch.tensor([0, 3, 5]), torch.tensor([[3, 4, 0, 0], [10, 20, 3, 1], [16, 16, 5, 2]]), \
+        torch.tensor([1, 0, 1])
+
+    def grads(limit: int) -> dict:
+        monkeypatch.setattr(network, "_WGRAD_MAX_ELEMENTS", limit)
+        model.zero_grad(set_to_none=True)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            loss = model.loss(model.forward_train(scenes, grippers, k), action, label)
+        loss.backward()
+        return {n: p.grad.clone() for n, p in model.named_parameters()}
+
+    whole = grads(2**40)
+    chunked = grads(2 * 32 * 32 * 16)
+    for name, g in whole.items():
+        assert chunked[name].dtype == torch.float32, name
+        scale = max(1e-6, float(g.abs().max()))
+        assert float((chunked[name] - g).abs().max()) <= 0.05 * scale, name

@@ -10,7 +10,7 @@ from common.camera import top_down_camera
 from common.checkpoint import save_checkpoint
 from common.config import load_config
 from common.gripper import get_gripper
-from common.gripper_encoding import GripperEncoder, gripper_key
+from common.gripper_encoding import GripperEncoder, gripper_key, spec_tag
 from common.network import build_model
 from common.planner import GraspPlanner, PlannerError
 from common.policy import grasp_pose, valid_cells
@@ -122,6 +122,8 @@ def test_bad_planner_input_is_one_line():
         (dict(depths=[depth], intrinsics=[K], camera_poses=[T], grippers=[]), "grippers"),
         (dict(depths=[depth], intrinsics=[K], camera_poses=[T], openings=(1.5,)), "openings"),
         (dict(depths=[depth], intrinsics=[K], camera_poses=[T], top_k=0), "top_k"),
+        (dict(depths=[(depth * 1000).astype(np.uint16)], intrinsics=[K], camera_poses=[T]),
+         r"depths\[0\]: expected float metres, got dtype uint16"),
     ]
     for kwargs, needle in cases:
         kwargs.setdefault("grippers", [GRIPPER])
@@ -160,7 +162,7 @@ def test_planned_grasp_executes_in_the_simulator(tmp_path):
     assert outcome.yaw == pytest.approx(best.yaw) and outcome.opening == best.opening
     assert outcome.steps > 0
     assert planner.encoder.encode(spec, 1.0, openings).shape == (1, 2, 32, 32, 16)
-    assert gripper_key(spec.name, 1.0, openings) in {k for k, *_ in planner.model._kernels}
+    assert gripper_key(spec_tag(spec), 1.0, openings) in {k for k, *_ in planner.model._kernels}
 
 
 def test_planner_ranks_with_a_calibration():
@@ -180,3 +182,32 @@ def test_planner_ranks_with_a_calibration():
     assert best.action == (i, j, k, s, best.gripper)
     with pytest.raises(PlannerError, match="calibration: cal.json: episode_results: no trials of gripper wsg_50"):
         planner.plan([depth], [K], [T], [GRIPPER, "wsg_50"], openings=(0.5, 1.0), calibration=cal)
+
+
+def test_a_single_obstacle_mask_is_taken_like_a_single_depth_image():
+    cfg = load_config("default", SMALL)
+    planner = planner_for(cfg)
+    K, T, depth = box_depth(cfg)
+    mask = depth < depth.max()
+    one = planner.observe(depth, K, T, obstacle_masks=mask)
+    listed = planner.observe([depth], [K], [T], obstacle_masks=[mask])
+    assert one.obstacle.any() and np.array_equal(one.obstacle, listed.obstacle)
+
+
+def test_kernels_follow_the_grippers_geometry_not_its_name():
+    """The model caches each gripper's kernels: a spec of another geometry under a name already
+    planned with (an edited spec file, two files of one name) gets its own scores."""
+    import dataclasses
+
+    cfg = load_config("default", SMALL)
+    planner = planner_for(cfg)
+    K, T, depth = box_depth(cfg)
+    other = get_gripper("three_finger-1")
+    planner.plan(depth, K, T, GRIPPER, openings=(1.0,))
+    first = planner.last_probs.copy()
+    planner.plan(depth, K, T, dataclasses.replace(other, name=GRIPPER), openings=(1.0,))
+    renamed = planner.last_probs.copy()
+    fresh = planner_for(cfg)
+    fresh.plan(depth, K, T, other, openings=(1.0,))
+    assert not np.allclose(renamed, first)
+    np.testing.assert_allclose(renamed, fresh.last_probs, atol=1e-6)
