@@ -146,7 +146,7 @@ class Simulation:
         self.rng = np.random.default_rng(self.seed)
         self.objects: dict[int, SceneObject] = {}
         self.gripper: BulletGripper | None = None
-        self._gripper_key: tuple[str, float] | None = None
+        self._gripper_key: tuple[GripperSpec, float] | None = None
         self._object_sets: dict[str, list[ObjectModel]] = {}
         self.centre = np.append(grid_centre(self.grid), 0.0)
         self.cameras = scene_cameras(self.grid, cfg.sim)
@@ -497,8 +497,9 @@ class Simulation:
     # ---------------------------------------------------------------- gripper
 
     def load_gripper(self, spec: GripperSpec, scale: float = 1.0) -> BulletGripper:
-        """The scene's gripper built from ``spec`` at ``scale`` (reused while both stay the same), parked."""
-        key = (spec.name, float(scale))
+        """The scene's gripper built from ``spec`` at ``scale`` (reused while both stay the same, every
+        field of the spec compared: two specs of one name are two grippers), parked."""
+        key = (spec, float(scale))
         if self.gripper is not None and self._gripper_key == key:
             self.park_gripper()
             return self.gripper

@@ -223,3 +223,18 @@ def test_a_world_that_fails_to_build_leaves_no_client_connected(default_cfg, mon
     with pytest.raises(RuntimeError, match="world build failure"):
         Simulation(default_cfg, seed=0)
     assert len(clients) == 1 and clients[0] >= 0 and not pybullet.isConnected(physicsClientId=clients[0])
+
+
+def test_a_gripper_is_reused_only_for_the_same_spec_and_scale(default_cfg):
+    """load_gripper keeps the loaded gripper for an equal spec (a fresh get_gripper of the same
+    file) at the same scale; another spec under the same name is another gripper."""
+    import dataclasses
+
+    spec = get_gripper("parallel_jaw-0")
+    with Simulation(default_cfg, seed=0) as sim:
+        first = sim.load_gripper(spec, 1.0)
+        assert sim.load_gripper(get_gripper("parallel_jaw-0"), 1.0) is first
+        renamed = dataclasses.replace(get_gripper("three_finger-1"), name=spec.name)
+        other = sim.load_gripper(renamed, 1.0)
+        assert other is not first and other.spec is renamed
+        assert sim.load_gripper(renamed, 1.1) is not other
