@@ -203,8 +203,9 @@ def pool(sides: list[Side]) -> Side:
     if len(sides) == 1:
         return first
     seen: dict[int, str] = {}
-    for s in sides:
-        _check_same_model(s, first)
+    for n, s in enumerate(sides):
+        for earlier in sides[:n]:  # every pair: a file without a digest matches by name, which is not transitive
+            _check_same_model(s, earlier)
         for key in POOL_KEYS:
             mine, theirs = _poolable(key, s.summary.get(key)), _poolable(key, first.summary.get(key))
             if mine == theirs:
@@ -220,6 +221,10 @@ def pool(sides: list[Side]) -> Side:
                                   f"{row_label(first.summary)!r}: only results of one row pool")
         if s.grippers != first.grippers:
             raise EvaluationError(f"{s.path}: grippers {s.grippers}: {first.path} pairs {first.grippers}")
+        mine, theirs = sorted(_candidates(s.path, s.summary)), sorted(_candidates(first.path, first.summary))
+        if mine != theirs:  # adagrasp pairs one row of choices; the grippers it chose among must agree too
+            raise EvaluationError(f"{s.path}: gripper_names: {mine}, but {first.path} has {theirs}: only results "
+                                  "of one row pool")
         for seed in s.scene_seeds:
             if seed in seen:
                 raise EvaluationError(f"{s.path}: scene_seed {seed}: also in {seen[seed]} (pool other scenes, "

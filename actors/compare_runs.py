@@ -402,12 +402,13 @@ def _check_models(sides: list[list[list[RunFile]]], paired: bool) -> None:
     else no model on both sides (Welch's samples must be independent)."""
     for tag, runs in zip("AB", sides):
         for i, run in enumerate(runs):
-            for rf in run:
+            for n, rf in enumerate(run):
                 _check_trained(rf.path, rf.summary, "runs compares training runs")
-                key = model_difference(rf.summary, run[0].summary)
-                if key:
-                    raise EvaluationError(f"{_models_line(key, rf, run[0])}, of the same run (a run's files are "
-                                          "one model on other scene seeds)")
+                for earlier in run[:n]:  # every pair: matching by name where a digest is missing is not transitive
+                    key = model_difference(rf.summary, earlier.summary)
+                    if key:
+                        raise EvaluationError(f"{_models_line(key, rf, earlier)}, of the same run (a run's files "
+                                              "are one model on other scene seeds)")
             for other in runs[:i]:
                 if model_difference(run[0].summary, other[0].summary) is None:
                     raise EvaluationError(f"{run[0].path}: checkpoint: the model of {other[0].path}, also a run of "

@@ -808,6 +808,14 @@ def read_result(path: str | Path) -> dict:
         raise EvaluationError(f"{path}: policy: expected one of {list(POLICIES)}, got {data['policy']!r}")
     if data["scene"] not in SCENE_KINDS:
         raise EvaluationError(f"{path}: scene: expected one of {list(SCENE_KINDS)}, got {data['scene']!r}")
+    for key in ("objects", "grippers"):
+        if not isinstance(data[key], str):
+            raise EvaluationError(f"{path}: {key}: expected the selection as text, got {data[key]!r:.60}")
+    if not isinstance(data.get("checkpoint_sha256"), (str, type(None))):
+        raise EvaluationError(f"{path}: checkpoint_sha256: expected a hex digest, got {data['checkpoint_sha256']!r:.60}")
+    if row_label(data) not in ROWS:
+        raise EvaluationError(f"{path}: opening_rule: {data.get('opening_rule')!r} is not a rule {data['policy']} "
+                              f"results are written with")
     if not math.isfinite(data["rate"]):
         raise EvaluationError(f"{path}: rate: expected a finite number, got {data['rate']!r}")
     counted = [("average", data["average"])] + [(f"per_gripper.{k}", v) for k, v in data["per_gripper"].items()]
@@ -816,6 +824,9 @@ def read_result(path: str | Path) -> dict:
             value = entry.get(key) if isinstance(entry, dict) else None
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise EvaluationError(f"{path}: {where}.{key}: expected a count, got {value!r:.60}")
+        rate = entry.get("rate")
+        if isinstance(rate, bool) or not isinstance(rate, (int, float, type(None))) or "rate" not in entry:
+            raise EvaluationError(f"{path}: {where}.rate: expected a number or null, got {rate!r:.60}")
     for n, e in enumerate(data["episode_results"]):
         if not isinstance(e, dict):
             raise EvaluationError(f"{path}: episode_results[{n}]: expected an object, got {e!r:.60}")

@@ -72,6 +72,9 @@ def _read(path: str, test: str) -> dict:
         if not isinstance(data.get(side), dict):
             raise EvaluationError(f"{path}: {side}: missing or not an object")
     a, b = data["a"], data["b"]
+    for tag, side in (("a", a), ("b", b)):
+        if not isinstance(side.get("row", ""), str):
+            raise EvaluationError(f"{path}: {tag}.row: expected a row name, got {side.get('row')!r}")
     cameras = fmt == RUNS_FORMAT and bool(data.get("across_cameras"))
     label = f"{side_label(a, cameras)} -> {side_label(b, cameras)}"
     if fmt == COMPARE_FORMAT:
@@ -81,6 +84,7 @@ def _read(path: str, test: str) -> dict:
             raise EvaluationError(f"{path}: p_value: none (an adagrasp row against a per-gripper row has no "
                                   "permutation test; its interval is the comparison)")
         record, key, difference, smallest = data, "p_value", data.get("rate_difference"), None
+        difference_key = "rate_difference"
     else:
         for tag, side in (("a", a), ("b", b)):
             budget = side.get("calibration_scenes")
@@ -94,13 +98,13 @@ def _read(path: str, test: str) -> dict:
         if record["p_value"] is None:
             raise EvaluationError(f"{path}: {key}: none (the runs have no spread, so t is undefined; "
                                   "use --test randomization)")
-        difference = data.get("mean_difference")
+        difference, difference_key = data.get("mean_difference"), "mean_difference"
         smallest = _number(path, f"{test}: smallest_p", record.get("smallest_p"), optional=True)
     p = _number(path, key, record["p_value"])
     if not 0.0 <= p <= 1.0:
         raise EvaluationError(f"{path}: {key}: expected a value in [0, 1], got {p!r}")
     return {"path": path, "label": label, "scene": data.get("scene"),
-            "difference": _number(path, "difference", difference, optional=True),
+            "difference": _number(path, difference_key, difference, optional=True),
             "test": record.get("test", test), "p_value": p, "smallest_p": smallest}
 
 

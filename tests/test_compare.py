@@ -522,3 +522,33 @@ def test_an_output_that_is_one_of_the_inputs_is_refused_before_anything_is_read(
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and "is one of this command's input files; it would be overwritten" in err[0], err
     assert {p: p.read_bytes() for p in files.values()} == before
+
+
+def test_pooling_refuses_adagrasp_results_that_chose_among_other_grippers(tmp_path):
+    """adagrasp pairs one row (its choice), so its candidates were never compared between pooled
+    files: a training-gripper file pooled with a test-gripper file read as one result."""
+    ada = [(1, 1), (0, 1), (1, 1), (1, 1), (0, 1)]
+    later = [21, 22, 23, 24, 25]
+    a, b = (write(tmp_path, n, result("adagrasp", ada, SEEDS)) for n in ("a", "b"))
+    a2 = write(tmp_path, "a2", result("adagrasp", ada, later))
+    b2 = write(tmp_path, "b2", result("adagrasp", ada, later, grippers=("wsg_50", "panda_hand", "g1_three_finger")))
+    same = write(tmp_path, "same", result("adagrasp", ada, later))
+    assert cmp.compare_cli([a, b, "--also", a2, same])["scenes"] == 10
+    with pytest.raises(ev.EvaluationError, match=r"b2\.json: gripper_names: \['g1_three_finger', 'panda_hand', "
+                                                 r"'wsg_50'\], but .*b\.json has \['panda_hand', 'wsg_50'\]"):
+        cmp.compare_cli([a, b, "--also", a2, b2])
+
+
+def test_pooling_checks_every_pair_of_files_for_one_model(tmp_path):
+    """Without a digest on one file the checkpoint name decides, with digests on both the digests:
+    not transitive, so a file without a digest first let two networks of one name pool."""
+    later, third = [21, 22, 23, 24, 25], [31, 32, 33, 34, 35]
+    named = {"checkpoint": "runs/r1/checkpoints/latest.pt"}
+    a0 = write(tmp_path, "a0", {**result("fix-gripper", FG_A, SEEDS), **named})
+    a2 = write(tmp_path, "a2", {**result("fix-gripper", FG_A, later), **named, "checkpoint_sha256": "11" * 32})
+    a3 = write(tmp_path, "a3", {**result("fix-gripper", FG_A, third), **named, "checkpoint_sha256": "22" * 32})
+    b0, b2, b3 = (write(tmp_path, n, result("fix-gripper", FG_B, s)) for n, s in (("b0", SEEDS), ("b2", later),
+                                                                                   ("b3", third)))
+    for order in ((b0, a0, b2, a2, b3, a3), (b2, a2, b0, a0, b3, a3)):
+        with pytest.raises(ev.EvaluationError, match=r"a3\.json: checkpoint_sha256: 222222222222\.\.\., but "):
+            cmp.compare_cli([order[0], order[1], "--also", order[2], order[3], "--also", order[4], order[5]])

@@ -600,3 +600,20 @@ def test_across_cameras_compares_two_camera_counts_of_one_row_as_any_two_rows(tm
     assert "across_cameras" not in same and "cameras" not in same["a"]
     for key in ("mean_difference", "run_differences", "t", "randomization", "scene_seeds"):
         assert out[key] == same[key], key
+
+
+def test_every_pair_of_a_runs_files_is_checked_for_one_model(tmp_path):
+    """A run's files are one model: a file without a digest matches the others by name, files with
+    digests by digest; checked pair by pair, whatever file comes first."""
+    rng = np.random.default_rng(12)
+    name = "runs/r1/checkpoints/latest.pt"
+    seeds = ([11, 12, 13], [21, 22, 23], [31, 32, 33])
+    digests = (None, "11" * 32, "22" * 32)
+    files = [run_file(tmp_path, f"r{n}", "fix-gripper", random_table(rng, 3), s, name, d)
+             for n, (s, d) in enumerate(zip(seeds, digests))]
+    others = make_runs(tmp_path, "b", "fix-gripper", 2, rng, seeds=[11, 12, 13, 21, 22, 23, 31, 32, 33])
+    second = [run_file(tmp_path, "s", "fix-gripper", random_table(rng, 9), [11, 12, 13, 21, 22, 23, 31, 32, 33],
+                       "model:s")]
+    for order in (files, [files[1], files[0], files[2]]):
+        with pytest.raises(ev.EvaluationError, match=r"r2\.json: checkpoint_sha256: 222222222222\.\.\., but .*r1\.json"):
+            cr.runs_cli(cli_args([order, second], others))

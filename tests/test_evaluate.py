@@ -463,6 +463,10 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
     no_episodes.write_text(json.dumps({k: v for k, v in single.items() if k != "episode_results"}))
     bare_episode = relabel(single, tmp_path, "bare_episode", episode_results=[{"scene_seed": 1}])
     seedless = relabel(single, tmp_path, "seedless", episode_results=[{"objects": [], "scene_seed": True}])
+    listed = relabel(single, tmp_path, "listed", objects=["train"])
+    digest = relabel(single, tmp_path, "digest", checkpoint_sha256=5)
+    rateless = relabel(single, tmp_path, "rateless", per_gripper={GRIPPER: {"attempts": 3, "successes": 1}})
+    rule = relabel(single, tmp_path, "rule", policy="scene-only", opening_rule="best")
     md = tmp_path / "never.md"
     for files, needle in (([single_path, dup], "the same cell is already in"), ([bad], "not valid JSON"),
                           ([old], "format: expected"), ([tmp_path / "gone.json"], "gone.json: file not found"),
@@ -476,7 +480,11 @@ def test_table_with_several_camera_counts_and_errors(scripted, tmp_path, capsys)
                           ([gripper_counts], f"gripper_counts.json: per_gripper.{GRIPPER}.attempts: expected a count"),
                           ([no_episodes], "no_episodes.json: episode_results: missing"),
                           ([bare_episode], "bare_episode.json: episode_results[0]: objects: missing"),
-                          ([seedless], "seedless.json: episode_results[0]: scene_seed: missing or not an integer")):
+                          ([seedless], "seedless.json: episode_results[0]: scene_seed: missing or not an integer"),
+                          ([listed], "listed.json: objects: expected the selection as text, got ['train']"),
+                          ([digest], "digest.json: checkpoint_sha256: expected a hex digest, got 5"),
+                          ([rateless], f"rateless.json: per_gripper.{GRIPPER}.rate: expected a number or null"),
+                          ([rule], "rule.json: opening_rule: 'best' is not a rule scene-only results are written")):
         assert ev.cli(["table", *map(str, files), "--md", str(md)]) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and needle in err

@@ -150,6 +150,10 @@ def _p_out_of_range(tmp_path, rng):
     return _edited(tmp_path, rng, lambda d: {**d, "t": {**d["t"], "p_value": 1.5}})
 
 
+def _row_null(tmp_path, rng):
+    return _edited(tmp_path, rng, lambda d: {**d, "b": {**d["b"], "row": None}})
+
+
 def _same_file_by_another_path(tmp_path, rng):
     files = _run_files(tmp_path, rng, 1)
     (tmp_path / "d").mkdir()
@@ -187,7 +191,8 @@ def _not_json(tmp_path, rng):
     (_side_not_an_object, [], r"runs0\.json: b: missing or not an object"),
     (_a_list, [], r"runs0\.json: format: 'list', expected"),
     (_p_true, [], r"cmp\.json: p_value: expected a number, got True"),
-    (_difference_text, [], r"runs0\.json: difference: expected a number, got '\+0\.1'"),
+    (_difference_text, [], r"runs0\.json: mean_difference: expected a number, got '\+0\.1'"),
+    (_row_null, [], r"runs0\.json: b\.row: expected a row name, got None"),
     (_p_out_of_range, [], r"runs0\.json: t: p_value: expected a value in \[0, 1\], got 1\.5"),
     *[(_budget(value), [], r"runs0\.json: b: calibration_scenes: expected null or gripper -> scenes \(positive "
                            r"integers\), got " + shown)
