@@ -34,6 +34,7 @@ import os
 import re
 import shutil
 import time
+import typing
 import uuid
 import warnings
 from dataclasses import dataclass
@@ -256,6 +257,30 @@ def check_root(root: str | Path, num_shards: int) -> bool:
     return True
 
 
+def _check_attributes(path: Path, attrs: dict) -> None:
+    """One line naming the attribute when a shard's schema attributes that readers compute with are
+    missing or of the wrong type (a hand-edited zarr.json), before any of them is used."""
+    def refuse(key: str, want: str) -> typing.NoReturn:
+        got = f"got {attrs[key]!r:.60}" if key in attrs else "missing"
+        raise ReplaySchemaError(f"{path}: attributes.{ATTR_KEY}.{key}: expected {want}, {got}")
+
+    def count(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+    for key in ("capacity", "slots", "table_rows", "chunk_trials", "tsdf_levels", "shard_index", "rotations"):
+        if not count(attrs.get(key)):
+            refuse(key, "a non-negative integer")
+    for key in ("scene_shape", "gripper_shape"):
+        v = attrs.get(key)
+        if not (isinstance(v, list) and len(v) == 3 and all(count(x) and x > 0 for x in v)):
+            refuse(key, "three positive integers")
+    for key in ("scene_grid", "gripper_grid"):
+        v = attrs.get(key)
+        size = v.get("voxel_size") if isinstance(v, dict) else None
+        if isinstance(size, bool) or not isinstance(size, (int, float)) or not size > 0:
+            refuse(key, "a grid with a positive voxel_size")
+
+
 def _refuse_damaged_shard(path: Path) -> None:
     """One line when ``path`` is a shard's folder (shard_NNN) that holds files but no zarr.json: its
     trials cannot be read, and a new shard cannot be created over them."""
@@ -473,6 +498,7 @@ class ReplayShard:
             raise ReplaySchemaError(
                 f"{p}: attributes.{ATTR_KEY}.kind: expected {SHARD_KIND!r}, got {attrs.get('kind')!r}"
             )
+        _check_attributes(p, attrs)
         self.attrs = dict(attrs)
         self.capacity = int(attrs["capacity"])
         self.slots = int(attrs["slots"])
@@ -633,7 +659,7 @@ class ReplayShard:
             bad_rows |= b
         if self.read_only:
             # a live writer may have evicted trials while the columns were read: those are gone, not lost
-            self._first = max(self._first, self._read_commit()[0])
+            self._follow_evictions()
         self._lost = np.zeros(c, bool)
         ids = np.arange(self._first, self._end, dtype=np.int64)
         slots = ids % c
@@ -901,8 +927,15 @@ class ReplayShard:
         read (its chunks may then be gone or rewritten: not damage). Always False for the writer."""
         if not self.read_only:
             return False
-        self._first, self._end = self._read_commit()
+        self._follow_evictions()
         return trial < self._first
+
+    def _follow_evictions(self) -> None:
+        """A reader: take the writer's newer ``commit[0]`` (trials evicted since the columns were
+        loaded), but not its end: trials committed since then are read by :meth:`refresh`, since
+        the columns in memory may hold a slot's trial that was not yet committed (a writer
+        mid-insert, or one that crashed before its commit, whose slot a later trial fills)."""
+        self._first = max(self._first, self._read_commit()[0])
 
     def _mark_corrupt(self, name: str, trial: int, index: int, err: str) -> str:
         """Remember an unreadable trial (warned once); returns the one-line description. An
@@ -953,7 +986,7 @@ class ReplayShard:
                     break
                 dest[b] = res
         if self.read_only:
-            self._first, self._end = self._read_commit()
+            self._follow_evictions()
             keep &= ids_live >= self._first
         self._corrupt_skipped += int((~keep).sum())
         sel = np.flatnonzero(keep)

@@ -366,6 +366,34 @@ def test_bad_schema_version_names_path_and_touches_nothing(tmp_path):
     assert tree_digest(tmp_path / "s") == before
 
 
+@pytest.mark.parametrize("key, value, want", [
+    ("capacity", None, "capacity: expected a non-negative integer, missing"),
+    ("capacity", "six", "capacity: expected a non-negative integer, got 'six'"),
+    ("scene_shape", [32, 32], "scene_shape: expected three positive integers, got [32, 32]"),
+    ("scene_grid", None, "scene_grid: expected a grid with a positive voxel_size, missing"),
+])
+def test_a_hand_edited_shard_attribute_is_one_line(tmp_path, key, value, want):
+    """Attributes the readers compute with (python -m replay inspect / show / export open shards
+    read-only) were a KeyError or ValueError traceback when missing or of the wrong type."""
+    cfg = tiny_cfg()
+    shard = ReplayShard(tmp_path / "s", cfg)
+    shard.insert(make_trial(cfg, 0))
+    shard.close()
+    meta_file = tmp_path / "s" / "zarr.json"
+    doc = json.loads(meta_file.read_text())
+    attrs = doc["attributes"]["adagrasp_replay"]
+    if value is None:
+        del attrs[key]
+    else:
+        attrs[key] = value
+    meta_file.write_text(json.dumps(doc))
+    before = tree_digest(tmp_path / "s")
+    with pytest.raises(ReplaySchemaError) as e:
+        ReplayShard(tmp_path / "s", read_only=True)
+    assert f"{tmp_path / 's'}: attributes.adagrasp_replay.{want}" in one_line(e)
+    assert tree_digest(tmp_path / "s") == before
+
+
 def test_wrong_array_dtype_is_named(tmp_path):
     cfg = tiny_cfg()
     ReplayShard(tmp_path / "s", cfg).close()

@@ -279,3 +279,40 @@ def test_a_failed_write_loses_only_that_trial_and_the_shard_goes_on(tmp_path, fa
             assert np.abs(got.observation.obstacle - want.observation.obstacle).max() <= 1 / 254 + 1e-6, t
             assert np.abs(got.gripper_encoding - want.gripper_encoding[want.action[3]]).max() <= 1 / 254 + 1e-6
         assert reader.problems() == []
+
+
+class _Died(BaseException):
+    """A writer process ending between its data and its commit (not an error the shard handles)."""
+
+
+def test_a_reader_never_takes_a_trial_it_loaded_before_its_commit(tmp_path):
+    """A writer dies after writing trial 3's data and columns, before its commit; a reader opens
+    (commit [0, 3), but trial 3's columns are in its memory); a restarted writer commits another
+    trial as number 3. The reader's reads follow evictions only: trial 3 stays out of its index
+    until refresh(), which then shows the trial the writer committed, never a mix of the two."""
+    cfg = tiny_cfg(capacity=4, chunk=4)
+    path = tmp_path / "shard"
+    writer = ReplayShard(path, cfg)
+    for i in range(3):
+        writer.insert(make_trial(cfg, i, label=False))
+
+    def died(first, end):
+        raise _Died
+
+    writer._write_commit = died
+    with pytest.raises(_Died):
+        writer.insert(make_trial(cfg, 100, label=True, gripper="gripper_x"))
+    writer.close()
+    reader = ReplayShard(path, read_only=True)
+    assert reader.visible_ids().tolist() == [0, 1, 2]
+    writer = ReplayShard(path, cfg)
+    assert writer.insert(make_trial(cfg, 200, label=False, gripper="gripper_y")) == 3
+    reader.read([0])
+    assert reader.visible_ids().tolist() == [0, 1, 2]
+    assert reader.read([3])["missing"] == [3]
+    reader.refresh()
+    mine, theirs = reader.get_trial(3), writer.get_trial(3)
+    assert mine.gripper_key == theirs.gripper_key and mine.label == theirs.label is False
+    assert np.array_equal(mine.action, theirs.action)
+    writer.close()
+    reader.close()
