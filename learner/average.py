@@ -24,7 +24,14 @@ import argparse
 import sys
 from pathlib import Path
 
-from common.checkpoint import CheckpointError, load_checkpoint, network_difference, read_checkpoint, save_checkpoint
+from common.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    network_difference,
+    read_checkpoint,
+    resolve_checkpoint,
+    save_checkpoint,
+)
 
 KEPT_EXTRA = ("replay", "init_weights")
 """Keys of the last checkpoint's extra state that the average keeps (where the run was, not how to resume it)."""
@@ -33,14 +40,16 @@ KEPT_EXTRA = ("replay", "init_weights")
 def average_checkpoints(paths: list[str | Path], out: str | Path, force: bool = False) -> Path:
     """Write the uniform average of the checkpoints ``paths`` (at least two) to ``out``; returns it.
     An existing ``out`` is replaced only with ``force``, and never when it is one of ``paths``."""
-    if Path(out).resolve() in {Path(str(p)).resolve() for p in paths}:
+    files = [resolve_checkpoint(p).resolve() for p in paths]  # model:NAME and ./a.pt name their files
+    if Path(out).resolve() in files:
         raise ValueError(f"--out {out}: is one of the checkpoints averaged; it would be overwritten")
     if Path(out).exists() and not force:
         raise ValueError(f"--out {out}: exists (use --force to replace it)")
     if len(paths) < 2:
         raise ValueError(f"checkpoints: {len(paths)} given, at least two are needed to average")
-    if len({str(p) for p in paths}) != len(paths):
-        raise ValueError("checkpoints: a file is named twice (it would weigh double)")
+    if len(set(files)) != len(paths):
+        twice = next(str(p) for p, f in zip(paths, files) if files.count(f) > 1)
+        raise ValueError(f"checkpoints: {twice}: the file is named twice (it would weigh double)")
     model, first = load_checkpoint(paths[0])  # the network the average is loaded into
     sums = {k: v.double() if v.is_floating_point() else v for k, v in first.model_state.items()}
     origin = [first]

@@ -66,9 +66,16 @@ def read_greedy(paths: list[str], run: Path | None = None) -> list[dict]:
     seen (a checkpoint path missing from here is looked up in RUN/checkpoints when ``run`` is given)."""
     points = []
     for p in paths:
-        summary = json.loads(Path(p).read_text())
-        if "checkpoint" not in summary:
+        try:
+            summary = json.loads(Path(p).read_text())
+        except ValueError as e:
+            raise ValueError(f"{p}: not valid JSON ({' '.join(str(e).split())})") from None
+        if not isinstance(summary, dict) or "checkpoint" not in summary:
             raise ValueError(f"{p}: checkpoint: missing (not a rollout of a checkpoint policy)")
+        for key, kind in (("success_rate", (int, float)), ("successes", int), ("trials", int), ("mode", str)):
+            if isinstance(summary.get(key), bool) or not isinstance(summary.get(key), kind):
+                raise ValueError(f"{p}: {key}: missing or not a {'number' if key == 'success_rate' else kind.__name__} "
+                                 "(a rollout --json summary of a checkpoint policy)")
         inserted, step = _trials_seen(str(summary["checkpoint"]), run, p)
         points.append({**summary, "inserted": inserted, "step": step})
     return sorted(points, key=lambda d: d["inserted"])

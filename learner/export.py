@@ -49,6 +49,8 @@ def export_model(run: str | Path, name: str, checkpoint: str | Path | None = Non
     out = out / name
     if out.exists() and not force:
         raise ValueError(f"{out}: exists (use --force to replace it)")
+    if out.exists() and (out.resolve() == run.resolve() or out.resolve() in run.resolve().parents):
+        raise ValueError(f"{out}: is the run directory or holds it; --force would delete the run it exports")
     model, ckpt = load_checkpoint(source)
     learner_state = ckpt.extra.get("learner")
     if trained_weights:

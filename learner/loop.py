@@ -146,13 +146,26 @@ def non_finite_tensors(state: dict) -> list[str]:
     return [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
 
 
-def _ends_mid_line(path: Path) -> bool:
-    """True when the non-empty file ``path`` does not end with a newline (a write was cut off)."""
-    with open(path, "rb") as f:
-        if f.seek(0, os.SEEK_END) == 0:
-            return False
-        f.seek(-1, os.SEEK_END)
-        return f.read(1) != b"\n"
+def _drop_torn_line(path: Path) -> None:
+    """A JSON-lines file whose last line was cut off (a killed write) loses that part-line, which
+    no reader can parse (learner.curve refuses the file over it), with one line on stdout; every
+    complete line stays."""
+    if not path.is_file():
+        return
+    with open(path, "r+b") as f:
+        size = f.seek(0, os.SEEK_END)
+        if size == 0:
+            return
+        f.seek(max(0, size - 65536))
+        tail = f.read()
+        if tail.endswith(b"\n"):
+            return
+        cut = tail.rfind(b"\n")
+        if cut < 0 and size > len(tail):
+            return  # a last line over 64 KiB is not one of ours: left alone
+        keep = size - len(tail) + cut + 1
+        f.truncate(keep)
+    print(f"{path}: dropped a cut-off last line of {size - keep} bytes (a write of a killed run)", flush=True)
 
 
 def total_inserted(replay: ReplayClient) -> int:
@@ -368,9 +381,8 @@ class Progress:
         self.recent: deque = deque(maxlen=200)
         self.by_group: dict[str, deque] = {}
         log = Path(run_dir) / "progress.jsonl"
+        _drop_torn_line(log)
         self.log = open(log, "a")
-        if _ends_mid_line(log):
-            self.log.write("\n")  # a part killed mid-line: its torn line stays alone on its line
         self.tb = SummaryWriter(str(Path(run_dir) / "tb"))
         self.dashboard = dashboard
         self.episodes = 0

@@ -70,6 +70,9 @@ def test_average_refuses_unlike_checkpoints_in_one_line(tmp_path, capsys):
     assert "at least two" in capsys.readouterr().err
     assert cli([str(a), str(a), "--out", str(out)]) == 2
     assert "named twice" in capsys.readouterr().err
+    (tmp_path / "d").mkdir()
+    assert cli([str(a), str(tmp_path / "d" / ".." / a.name), "--out", str(out)]) == 2
+    assert "the file is named twice" in capsys.readouterr().err
     assert not out.exists()
     with pytest.raises(ValueError, match="checkpoint file not found"):
         average_checkpoints([a, tmp_path / "gone.pt"], out)

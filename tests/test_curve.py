@@ -65,6 +65,12 @@ def test_curve_errors_are_one_line(tmp_path, capsys):
     assert main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--greedy", str(bad)]) == 2
     err = capsys.readouterr().err.strip()
     assert "scripted.json: checkpoint: missing" in err and "\n" not in err
+    for text, needle in (("3", "number.json: checkpoint: missing"), ("{", "number.json: not valid JSON"),
+                         (json.dumps({"checkpoint": "x.pt", "rate": 0.5}), "number.json: success_rate: missing")):
+        (tmp_path / "number.json").write_text(text)
+        assert main([str(tmp_path), "--out", str(tmp_path / "c.png"), "--greedy", str(tmp_path / "number.json")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and needle in err, err
     assert main([str(tmp_path / "nowhere"), "--out", str(tmp_path / "c.png")]) == 2
     assert "progress.jsonl: not found" in capsys.readouterr().err
     good = json.dumps({"time": 1, "trials": 10, "success_rate": 0.3, "epsilon": 0.8, "loss": 0.7})

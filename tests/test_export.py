@@ -73,3 +73,14 @@ def test_export_refuses_to_overwrite_and_bad_sources_fail_clearly(tmp_path, caps
     with pytest.raises(CheckpointError, match="checkpoint file not found"):
         export_model(tmp_path / "nowhere", "x", dest=dest)
     assert not (dest / "x").exists()
+
+
+def test_force_never_deletes_the_run_it_exports(tmp_path, capsys):
+    """--force replaces an earlier export; a destination that is the run directory itself (or a
+    folder holding it) is refused, where rmtree would have deleted the run's replay and checkpoints."""
+    run, _ = make_run(tmp_path)
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    assert cli([str(run), run.name, "--dest", str(run.parent), "--force"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "is the run directory or holds it" in err and "\n" not in err
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before

@@ -887,20 +887,24 @@ def test_resume_from_a_weights_only_checkpoint_is_refused_in_one_line(filled_rep
     assert _files(run) == before
 
 
-def test_a_torn_last_progress_line_stays_alone_on_its_line(tmp_path):
-    """A part killed in the middle of a progress.jsonl line: the resumed part's lines start on a
-    line of their own, so every line but the torn one still parses."""
+def test_a_torn_last_progress_line_is_dropped_before_the_resumed_part_writes(tmp_path, capsys):
+    """A part killed in the middle of a progress.jsonl line: the resumed part drops the cut-off
+    line (it swallowed the next line, and the curve refuses a file with a line it cannot parse),
+    says so, and keeps every complete line; the curve then draws the run."""
+    from learner.curve import main as curve
     from learner.loop import Progress
 
     cfg = load_config("tiny")
     log = tmp_path / "progress.jsonl"
-    log.write_text('{"time": 1.0}\n{"time": 2.')
+    first = '{"time": 1.0, "trials": 3, "success_rate": 0.5, "epsilon": 0.8, "loss": 0.7}'
+    log.write_text(first + '\n{"time": 2.')
     progress = Progress(cfg, tmp_path, quiet=True)
     progress.tick(5, {"steps": 1, "samples": 8, "version": 1, "loss": 0.5}, 0.5, force=True)
     progress.close()
+    assert "dropped a cut-off last line of 11 bytes" in capsys.readouterr().out
     lines = log.read_text().splitlines()
-    assert lines[:2] == ['{"time": 1.0}', '{"time": 2.'] and len(lines) == 3
-    assert json.loads(lines[2])["learner_steps"] == 1
+    assert lines[0] == first and len(lines) == 2 and json.loads(lines[1])["learner_steps"] == 1
+    assert curve([str(tmp_path), "--out", str(tmp_path / "curve.png")]) == 0
 
 
 def test_a_local_run_whose_training_diverges_ends_with_one_line(tmp_path, capsys, monkeypatch):
