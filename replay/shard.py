@@ -634,6 +634,7 @@ class ReplayShard:
                     data[c0:c1] = arr[c0:c1]
                 except Exception as e:  # noqa: BLE001
                     bad[c0:c1] = True
+                    self._unreadable_chunks.add((name, c0 // step))
                     self._problem(
                         f"{self.path}/{name}: chunk of slots {c0}..{c1 - 1} unreadable ({_chunk_error(e)}); "
                         f"those trials are skipped"
@@ -644,6 +645,8 @@ class ReplayShard:
 
     def _load_state(self) -> None:
         c = self.slots
+        self._unreadable_chunks: set[tuple[str, int]] = set()
+        """(column, chunk) pairs that could not be read when the columns were loaded."""
         self._first, self._end = self._read_commit()
         self._col: dict[str, np.ndarray] = {}
         bad = np.zeros(c, bool)
@@ -737,7 +740,20 @@ class ReplayShard:
         """Write the whole chunk of column ``name`` that holds entry ``index``, from memory."""
         io = self._io[name]
         chunk = index // io.rows
+        if (name, chunk) in self._unreadable_chunks:
+            self._keep_unreadable_chunk(name, chunk)
         io.write(chunk, (self._table if table else self._col)[name][chunk * io.rows:(chunk + 1) * io.rows])
+
+    def _keep_unreadable_chunk(self, name: str, chunk: int) -> None:
+        """Before the first write over a column chunk that could not be read at open (it is rewritten
+        whole, from memory, where its trials are fill values), its file is renamed aside, so that
+        no stored byte is lost: ``<chunk key>.unreadable-<UNIX time>``, in the array's folder."""
+        self._unreadable_chunks.discard((name, chunk))
+        path = self._io[name].dir / self._io[name].key(chunk)
+        if path.is_file():
+            aside = path.with_name(f"{path.name}.unreadable-{int(time.time())}")
+            os.replace(path, aside)
+            self._problem(f"{path}: unreadable chunk kept as {aside.name} before it is rewritten")
 
     def _check_record(self, rec: EncodedTrial) -> None:
         x, y, z = self.scene_shape

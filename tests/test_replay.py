@@ -579,6 +579,18 @@ def test_corrupt_column_chunk_loses_only_its_trials(tmp_path):
         writer = ReplayShard(tmp_path / "s", cfg)
     writer.insert(make_trial(cfg, 12))  # evicts trial 0; the rest stays as it was
     assert writer.visible_ids().tolist() == [1, 2, 3, 8, 9, 10, 11, 12]
+    damaged = f.read_bytes()
+    for i in range(13, 17):
+        writer.insert(make_trial(cfg, i))
+    with pytest.warns(ReplayCorruptWarning, match=r"label/c\.1: unreadable chunk kept as c\.1\.unreadable-"):
+        writer.insert(make_trial(cfg, 17))  # slot 4: the damaged chunk is written again, whole
+    kept = list(f.parent.glob("c.1.unreadable-*"))
+    assert len(kept) == 1 and kept[0].read_bytes() == damaged, "the damaged bytes are not lost"
+    writer.close()
+    with pytest.warns(ReplayCorruptWarning, match=r"label: 2 visible trial\(s\) with missing values \(first: trial 6\)"):
+        reopened = ReplayShard(tmp_path / "s", cfg)  # trials 6 and 7 stay lost, now as fill values
+    assert 17 in reopened.visible_ids().tolist() and reopened.get_trial(17).label == make_trial(cfg, 17).label
+    reopened.close()
 
 
 # --------------------------------------------------------------------------------------
