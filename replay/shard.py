@@ -647,7 +647,11 @@ class ReplayShard:
         c = self.slots
         self._unreadable_chunks: set[tuple[str, int]] = set()
         """(column, chunk) pairs that could not be read when the columns were loaded."""
-        self._first, self._end = self._read_commit()
+        try:
+            self._first, self._end = self._read_commit()
+            damaged_commit = None
+        except ReplayCorruptError as e:
+            damaged_commit = str(e)
         self._col: dict[str, np.ndarray] = {}
         bad = np.zeros(c, bool)
         for name in COLUMN_NAMES:
@@ -660,7 +664,9 @@ class ReplayShard:
             data, b = self._load_column(name)
             self._table[name] = data
             bad_rows |= b
-        if self.read_only:
+        if damaged_commit is not None:
+            self._recover_commit(damaged_commit, bad)
+        elif self.read_only:
             # a live writer may have evicted trials while the columns were read: those are gone, not lost
             self._follow_evictions()
         self._lost = np.zeros(c, bool)
@@ -743,6 +749,24 @@ class ReplayShard:
         if (name, chunk) in self._unreadable_chunks:
             self._keep_unreadable_chunk(name, chunk)
         io.write(chunk, (self._table if table else self._col)[name][chunk * io.rows:(chunk + 1) * io.rows])
+
+    def _recover_commit(self, damage: str, bad: np.ndarray) -> None:
+        """The commit chunk is unreadable or missing (e.g. a power loss after its rename, nothing
+        being fsynced): the visible range is rebuilt from the trial_id column. The newest trial
+        number found there is left out, since its insert may have stopped before its commit (its
+        other columns may still be the previous trial's); the ``capacity`` trials before it are
+        complete, as the ring keeps ``capacity + 1`` slots. A writer keeps the damaged file aside
+        (like a column chunk's) and writes the recovered commit; a reader uses it in memory."""
+        ids = self._col["trial_id"][~bad]
+        newest = int(ids.max()) if ids.size else -1
+        end = max(newest, 0)
+        first = max(0, end - self.capacity)
+        self._first, self._end = first, end
+        self._problem(f"{damage}; recovered [{first}, {end}) from the trial_id column"
+                      + (f" (trial {newest}, the newest stored, left out)" if newest >= 0 else ""))
+        if not self.read_only:
+            self._keep_unreadable_chunk("commit", 0)
+            self._write_commit(first, end)
 
     def _keep_unreadable_chunk(self, name: str, chunk: int) -> None:
         """Before the first write over a column chunk that could not be read at open (it is rewritten

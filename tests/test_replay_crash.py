@@ -20,7 +20,7 @@ import pytest
 import zarr
 
 from replay.schema import ReplayError, max_errors
-from replay.shard import ReplayShard, check_shards, ensure_root, find_shards
+from replay.shard import ReplayCorruptWarning, ReplayShard, check_shards, ensure_root, find_shards
 from replay.synthetic import numbered_trial as make_trial
 from replay.synthetic import small_config as tiny_cfg
 
@@ -316,3 +316,40 @@ def test_a_reader_never_takes_a_trial_it_loaded_before_its_commit(tmp_path):
     assert np.array_equal(mine.action, theirs.action)
     writer.close()
     reader.close()
+
+
+@pytest.mark.parametrize("damage", ["checksum", "missing"])
+def test_a_damaged_commit_is_rebuilt_from_the_trial_ids_and_its_bytes_kept(tmp_path, damage):
+    """A commit chunk that is unreadable or gone (a power loss after its rename: nothing is
+    fsynced) made the whole shard unopenable. The visible range is rebuilt from the trial_id
+    column without the newest trial (its insert may have stopped before its commit); a reader
+    uses it in memory, a writer keeps the damaged file aside, writes the commit and goes on."""
+    cfg = tiny_cfg(capacity=4, chunk=4)
+    path = tmp_path / "shard"
+    with ReplayShard(path, cfg) as writer:
+        for i in range(7):
+            writer.insert(make_trial(cfg, i))
+    commit = path / "commit" / "c.0"
+    damaged = commit.read_bytes()[:-2] + b"xx"
+    if damage == "checksum":
+        commit.write_bytes(damaged)
+    else:
+        commit.unlink()
+    with pytest.warns(ReplayCorruptWarning, match=r"commit: .*; recovered \[2, 6\) from the trial_id column "
+                                                  r"\(trial 6, the newest stored, left out\)"):
+        reader = ReplayShard(path, read_only=True)
+    assert reader.visible_ids().tolist() == [2, 3, 4, 5]
+    reader.close()
+    with pytest.warns(ReplayCorruptWarning) as warned:
+        writer = ReplayShard(path, cfg)
+    lines = [str(w.message) for w in warned]
+    assert any("recovered [2, 6)" in line for line in lines), lines
+    assert any("kept as c.0.unreadable-" in line for line in lines) == (damage == "checksum"), lines
+    assert writer.visible_ids().tolist() == [2, 3, 4, 5]
+    assert writer.insert(make_trial(cfg, 6)) == 6
+    assert writer.get_trial(5).label == make_trial(cfg, 5).label
+    writer.close()
+    kept = list((path / "commit").glob("c.0.unreadable-*"))
+    assert (len(kept), kept and kept[0].read_bytes()) == ((1, damaged) if damage == "checksum" else (0, []))
+    with ReplayShard(path, cfg) as reopened:
+        assert reopened.visible_ids().tolist() == [3, 4, 5, 6] and reopened.problems() == []
