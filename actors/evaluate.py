@@ -892,7 +892,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--objects", required=True, help="object set: train | test | ycb | household | ...")
     ap.add_argument("--grippers", required=True, help="train | test | NAME,NAME,... (names or spec YAML paths)")
     ap.add_argument("--policy", choices=POLICIES, required=True)
-    ap.add_argument("--cameras", type=int, default=1, help="cameras fused into the TSDF, 1-4")
+    ap.add_argument("--cameras", type=int, default=None,
+                    help="cameras fused into the TSDF, 1-4 (default: the config's sim.cameras)")
     ap.add_argument("--episodes", type=int, required=True, help="episodes per gripper (adagrasp: in all)")
     ap.add_argument("--actors", type=int, default=1, help="Ray actors (1 = this process, no Ray)")
     ap.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray)")

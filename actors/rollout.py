@@ -145,7 +145,7 @@ def run(args) -> dict:
     from actors.evaluate import check_output_path  # imported here: actors.evaluate builds on this module
 
     weights = [args.policy[len("checkpoint:"):]] if args.policy.startswith("checkpoint:") else []
-    check_output_path("--json", args.json, weights)  # written after every episode: refuse an unwritable one first
+    check_output_path("--json", args.json, weights)  # written after the last episode: refused before the first
     if png_dir is not None:
         png_dir.mkdir(parents=True, exist_ok=True)
     trials, successes, times = 0, 0, []

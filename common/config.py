@@ -456,6 +456,43 @@ _RANGES: dict[str, tuple[float, float]] = {
 
 
 _YAML12_FLOAT = re.compile(r"[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?")
+_YAML12_INT = re.compile(r"[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+")
+
+
+class _ConfigLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2 integers and no repeated keys: YAML 1.1 reads ``010`` as
+    8 (octal) and ``1:30`` as 90 (base 60), and a repeated section or key silently keeps the last."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice (the second would replace the first)", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+    def construct_yaml_int(self, node):
+        text = self.construct_scalar(node)
+        if text.startswith(("0o", "0x")):
+            return int(text[2:], 8 if text[1] == "o" else 16)
+        return int(text, 10)
+
+
+_ConfigLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:int"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_ConfigLoader.add_implicit_resolver("tag:yaml.org,2002:int", re.compile(rf"^(?:{_YAML12_INT.pattern})$"),
+                                    list("-+0123456789"))
+_ConfigLoader.add_constructor("tag:yaml.org,2002:int", _ConfigLoader.construct_yaml_int)
+
+
+def _load_yaml(text: str):
+    """A config file's or a ``--set`` value's YAML (see :class:`_ConfigLoader`)."""
+    return yaml.load(text, Loader=_ConfigLoader)
 """A YAML 1.2 core-schema number, finite (no .inf / .nan)."""
 
 
@@ -523,7 +560,9 @@ def _coerce(name: str, tp: Any, value: Any, source: str) -> Any:
 def _apply(obj: Any, data: dict, source: str, prefix: str = "") -> None:
     """Override dataclass ``obj`` in place from a nested dict."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: {prefix or '<top>'}: expected a mapping, got {data!r}")
+        section = prefix.rstrip(".") or "<top>"
+        empty = " (an empty section: remove it, or give it keys)" if data is None else ""
+        raise ConfigError(f"{source}: {section}: expected a mapping, got {data!r}{empty}")
     hints = typing.get_type_hints(type(obj))
     names = {f.name for f in dataclasses.fields(obj)}
     for key, value in data.items():
@@ -607,19 +646,20 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         if not p.is_file():
             raise ConfigError(f"{p}: config file not found")
         try:
-            data = yaml.safe_load(p.read_text()) or {}
+            data = _load_yaml(p.read_text()) or {}
         except yaml.YAMLError as e:
             mark = getattr(e, "problem_mark", None)
-            where = f" line {mark.line + 1}" if mark is not None else ""
-            raise ConfigError(f"{p}:{where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+            where = f": line {mark.line + 1}" if mark is not None else ""
+            problem = " ".join(str(getattr(e, "problem", None) or e).split())
+            raise ConfigError(f"{p}{where}: not valid YAML ({problem})") from None
         _apply(cfg, data, str(p))
     overridden: set[str] = set()
     for item in overrides:
-        if "=" not in item:
-            raise ConfigError(f"--set {item}: expected key=value")
-        key, raw = item.split("=", 1)
+        key, raw = item.split("=", 1) if "=" in item else ("", "")
+        if not key.strip():
+            raise ConfigError(f"--set {item}: expected section.key=value")
         try:
-            value = yaml.safe_load(raw)
+            value = _load_yaml(raw)
         except yaml.YAMLError:
             value = raw
         set_value(cfg, key.strip(), value, "--set")

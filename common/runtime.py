@@ -66,15 +66,25 @@ def apply_process_env() -> bool:
     return _glibc_mallopt(env)
 
 
-def ray_init(address: str | None, num_cpus: int) -> None:
-    """Join the Ray cluster at ``address``, or start a local one with ``num_cpus`` logical CPUs.
+def cluster_address(address: str | None) -> str | None:
+    """The Ray cluster a command joins: ``address`` (--address), else ``RAY_ADDRESS`` from the
+    environment (set by ``ray job submit``, and what ``ray.init`` would join anyway), else None for a
+    local instance."""
+    return address or os.environ.get("RAY_ADDRESS") or None
+
+
+def ray_init(address: str | None, num_cpus: int) -> str | None:
+    """Join the Ray cluster at :func:`cluster_address`, or start a local one with ``num_cpus``
+    logical CPUs; returns the cluster's dashboard URL (None for a local instance, which runs none).
 
     Every worker process (actors, learner, shards) gets :func:`process_env`.
     """
     import ray
 
     runtime_env = {"env_vars": process_env()}
+    address = cluster_address(address)
     if address:
-        ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
-    else:
-        ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
+        context = ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
+        return getattr(context, "dashboard_url", None) or None
+    ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
+    return None

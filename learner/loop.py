@@ -573,11 +573,7 @@ def run_distributed(
     from ray.exceptions import RayActorError, RayTaskError
 
     # Logical CPUs: actors and the learner share the physical cores of a laptop.
-    ray_init(address, num_cpus=max(os.cpu_count() or 1, n_actors + 1))
-    try:
-        dashboard = ray.get_runtime_context().dashboard_url if address else None
-    except AttributeError:
-        dashboard = None
+    dashboard = ray_init(address, num_cpus=max(os.cpu_count() or 1, n_actors + 1))
     gpus = 1 if ray.cluster_resources().get("GPU", 0) >= 1 and cfg.learner.device != "cpu" else 0
     shards = start_remote_shards(run_dir / "replay", cfg)
     learner_cls = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=-1)(LearnerProcess)

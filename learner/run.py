@@ -31,6 +31,7 @@ import yaml
 from common.checkpoint import SHIPPED_PREFIX, CheckpointError, initial_weights, network_difference, read_checkpoint
 from common.config import Config, ConfigError, config_path, load_config, save_config, set_flags
 from common.files import atomic_write_text, finite_json
+from common.runtime import cluster_address
 from replay.schema import ReplayError
 
 
@@ -50,7 +51,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
-    """Config (from the run dir when resuming, limits in cfg.run) and run directory."""
+    """Config (from the run dir when resuming, limits in cfg.run) and run directory (absolute:
+    the learner and the shards may run in Ray workers in other working directories)."""
+    if args.actors < 0:
+        raise ConfigError(f"--actors: expected 0 (everything in this process) or more, got {args.actors}")
+    if args.actors == 0 and args.address:
+        raise ConfigError(f"--address {args.address}: --actors 0 runs everything in this process, without Ray; "
+                          "give the cluster grasp actors")
     config_file = Path(args.run_dir or ".") / "config.yaml" if args.resume else config_path(args.config or "default")
     source = f"{config_file}{' with --set' if args.set else ''}"  # where the values came from, in errors
     if args.resume:
@@ -95,6 +102,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         ("--max-trials", "run.max_trials", args.max_trials),
         ("--max-minutes", "run.max_minutes", args.max_minutes),
     ))
+    run_dir = run_dir.absolute()
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"{run_dir}: --run-dir: exists and is not a folder")
     if (run_dir / "replay" / "zarr.json").is_file() and (args.resume or not cfg.replay.seed_from):
@@ -126,7 +134,7 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
             cfg.learner.init_weights = str(Path(cfg.learner.init_weights).resolve())
         initial_weights(cfg)
     check_names(cfg, source)
-    if args.address is None:  # the learner runs on this machine: its device must be here
+    if cluster_address(args.address) is None:  # the learner runs on this machine: its device must be here
         from learner.learner import resolve_device
 
         try:

@@ -146,3 +146,30 @@ def test_paper_config_explores_over_the_papers_2000_epochs_of_8_trials():
     assert epsilon_at(cfg, 0) == pytest.approx(0.8)
     assert epsilon_at(cfg, 8 * 1000) == pytest.approx(0.5)
     assert epsilon_at(cfg, 8 * 2000) == pytest.approx(0.2) == epsilon_at(cfg, 10**6)
+
+
+def test_integers_follow_yaml_1_2_and_repeated_keys_are_refused(tmp_path):
+    """PyYAML reads YAML 1.1: 010 was 8 (octal), 1:30 was 90 (base 60), and a section given twice
+    kept only the second, silently."""
+    assert load_config("default", overrides=["run.seed=010"]).run.seed == 10
+    assert load_config("default", overrides=["run.seed=0x10"]).run.seed == 16
+    with pytest.raises(ConfigError, match=r"^--set: run.max_minutes: expected a number, got '1:30'$"):
+        load_config("default", overrides=["run.max_minutes=1:30"])
+    f = tmp_path / "twice.yaml"
+    f.write_text("learner:\n  lr: 0.001\n  batch_size: 4\nlearner:\n  samples_per_insert: 4.0\n")
+    with pytest.raises(ConfigError, match=r"twice\.yaml: line 4: not valid YAML \(key 'learner' given twice"):
+        load_config(str(f))
+    f.write_text("run:\n  seed: 010\n")
+    assert load_config(str(f)).run.seed == 10
+
+
+@pytest.mark.parametrize("text, override, message", [
+    ("learner:\n", [], "twice.yaml: learner: expected a mapping, got None (an empty section"),
+    ("run:\n  seed: 1\n", ["=3"], "--set =3: expected section.key=value"),
+])
+def test_an_empty_section_or_key_is_worded_as_such(tmp_path, text, override, message):
+    f = tmp_path / "twice.yaml"
+    f.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_config(str(f), overrides=override)
+    assert message in str(e.value) and "\n" not in str(e.value), str(e.value)

@@ -731,3 +731,12 @@ def test_summary_line_says_how_its_rate_is_made(tmp_path, capsys):
     line = capsys.readouterr().out.strip().splitlines()[-1]
     pooled = f"{result['average']['successes']}/{result['average']['attempts']} grasps"
     assert rc == 0 and f"rate {result['rate']:.3f} (mean of per-gripper rates; {pooled})" in line, line
+
+
+def test_the_camera_count_comes_from_the_config_unless_given():
+    """--cameras defaulted to 1 and replaced a --config's or --set's sim.cameras silently."""
+    argv = ["--scene", "single", "--objects", "train", "--grippers", GRIPPER, "--policy", "heuristic",
+            "--episodes", "1", "--set", "sim.cameras=3"]
+    assert ev.plan_from_argv(argv).cfg.sim.cameras == 3
+    assert ev.plan_from_argv([*argv, "--cameras", "2"]).cfg.sim.cameras == 2
+    assert ev.plan_from_argv(argv[:-2]).cfg.sim.cameras == 1

@@ -418,3 +418,35 @@ def test_launcher_kill_then_resume(tmp_path):
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     written = json.loads((run_dir / "summary.json").read_text())
     assert written["earlier_parts"] == [summary] and written["trials"] >= summary["trials"] + 5
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--actors", "-1"], "--actors: expected 0 (everything in this process) or more, got -1"),
+    (["--actors", "0", "--address", "auto"], "--address auto: --actors 0 runs everything in this process"),
+])
+def test_actor_counts_the_run_cannot_use_are_one_line(tmp_path, capsys, argv, message):
+    """A negative count started Ray, the shards and the learner with no actor to collect trials;
+    --address with --actors 0 was silently ignored (the run stayed in this process)."""
+    run_dir = tmp_path / "r"
+    rc = cli([*argv, "--config", "tiny", "--run-dir", str(run_dir)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and message in err[0], err
+    assert not run_dir.exists()
+
+
+def test_the_run_directory_is_absolute_and_ray_address_counts_as_a_cluster(tmp_path, monkeypatch):
+    """Ray workers (learner, shards) need not share the driver's working directory, so a relative
+    --run-dir (or the default runs/<time>) is made absolute. RAY_ADDRESS in the environment (ray job
+    submit) is the cluster the run joins, like --address: the learner's device is the cluster's."""
+    from common.runtime import cluster_address
+    from learner.run import parse_args, resolve
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert cluster_address(None) is None and cluster_address("auto") == "auto"
+    _, run_dir = resolve(parse_args(["--config", "tiny", "--run-dir", "rel"]))
+    assert run_dir == tmp_path / "rel" and run_dir.is_absolute()
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    assert cluster_address(None) == "10.0.0.1:6379"
+    cfg, _ = resolve(parse_args(["--config", "tiny", "--run-dir", "gpu", "--set", "learner.device=cuda"]))
+    assert cfg.learner.device == "cuda"
