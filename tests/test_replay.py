@@ -346,15 +346,23 @@ def test_shard_reopened_with_other_rotations_depth_or_truncation_is_refused(tmp_
     reopened.close()
 
 
-def test_bad_schema_version_names_path_and_touches_nothing(tmp_path):
+def _shard_with_edited_attributes(path: Path, edit) -> Path:
+    """A one-trial shard at ``path`` whose schema attributes ``edit`` (a function of the dict)
+    changed by hand; returns its group's zarr.json."""
     cfg = tiny_cfg()
-    shard = ReplayShard(tmp_path / "s", cfg)
+    shard = ReplayShard(path, cfg)
     shard.insert(make_trial(cfg, 0))
     shard.close()
-    meta_file = tmp_path / "s" / "zarr.json"
+    meta_file = path / "zarr.json"
     doc = json.loads(meta_file.read_text())
-    doc["attributes"]["adagrasp_replay"]["schema_version"] = 99
+    edit(doc["attributes"]["adagrasp_replay"])
     meta_file.write_text(json.dumps(doc))
+    return meta_file
+
+
+def test_bad_schema_version_names_path_and_touches_nothing(tmp_path):
+    cfg = tiny_cfg()
+    meta_file = _shard_with_edited_attributes(tmp_path / "s", lambda a: a.update(schema_version=99))
     before = tree_digest(tmp_path / "s")
     for kwargs in ({"cfg": cfg}, {"read_only": True}):
         with pytest.raises(ReplaySchemaError) as e:
@@ -375,18 +383,7 @@ def test_bad_schema_version_names_path_and_touches_nothing(tmp_path):
 def test_a_hand_edited_shard_attribute_is_one_line(tmp_path, key, value, want):
     """Attributes the readers compute with (python -m replay inspect / show / export open shards
     read-only) were a KeyError or ValueError traceback when missing or of the wrong type."""
-    cfg = tiny_cfg()
-    shard = ReplayShard(tmp_path / "s", cfg)
-    shard.insert(make_trial(cfg, 0))
-    shard.close()
-    meta_file = tmp_path / "s" / "zarr.json"
-    doc = json.loads(meta_file.read_text())
-    attrs = doc["attributes"]["adagrasp_replay"]
-    if value is None:
-        del attrs[key]
-    else:
-        attrs[key] = value
-    meta_file.write_text(json.dumps(doc))
+    _shard_with_edited_attributes(tmp_path / "s", lambda a: a.pop(key) if value is None else a.update({key: value}))
     before = tree_digest(tmp_path / "s")
     with pytest.raises(ReplaySchemaError) as e:
         ReplayShard(tmp_path / "s", read_only=True)
