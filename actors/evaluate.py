@@ -896,7 +896,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="cameras fused into the TSDF, 1-4 (default: the config's sim.cameras)")
     ap.add_argument("--episodes", type=int, required=True, help="episodes per gripper (adagrasp: in all)")
     ap.add_argument("--actors", type=int, default=1, help="Ray actors (1 = this process, no Ray)")
-    ap.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray)")
+    ap.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS if set, else a local Ray)")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                     help="torch device of the network (learned policies; Ray actors share one GPU)")
     ap.add_argument("--seed", type=int, default=0, help="root seed of the scene and policy seeds")

@@ -45,7 +45,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir")
     p.add_argument("--max-trials", type=int, default=None, help="stop once the run has this many trials (a resumed run counts its earlier parts)")
     p.add_argument("--max-minutes", type=float, default=None, help="stop after this many minutes")
-    p.add_argument("--address", default=None, help="Ray cluster address (e.g. auto); default: a local instance")
+    p.add_argument("--address", default=None, help="Ray cluster address (e.g. auto); default: RAY_ADDRESS if set, else a local instance")
     p.add_argument("--quiet", action="store_true", help="no live progress line")
     return p.parse_args(argv)
 
