@@ -36,7 +36,7 @@ from common.gripper import GripperModel, GripperSpec, get_gripper
 from common.gripper_encoding import GripperEncoder, gripper_key, spec_tag
 from common.network import AdaGraspNet
 from common.observation import Observation
-from common.policy import grasp_pose, valid_cells
+from common.policy import action_region, grasp_pose, valid_cells
 from common.tsdf import fuse_observation
 
 
@@ -204,6 +204,11 @@ class GraspPlanner:
             raise PlannerError(f"openings: expected values in [0, 1], got {openings}")
         specs = self._grippers(grippers)
         obs = self.observe(depths, intrinsics, camera_poses, obstacle_masks)
+        if not (obs.valid & action_region(self.cfg)).any():  # the policy would fall back to every cell
+            raise PlannerError(
+                "depths/camera_poses: the cameras observe no cell of the action region (empty depth images, or "
+                "poses that are not world-from-camera in the OpenCV frame: x right, y down, z forward)"
+            )
         encodings = [self.encoder.encode(spec, scale, openings) for spec, scale in specs]
         # the model's kernel cache is keyed by geometry, not name: an edited spec, or another spec
         # of the same name, gets kernels of its own

@@ -124,6 +124,9 @@ def test_bad_planner_input_is_one_line():
         (dict(depths=[depth], intrinsics=[K], camera_poses=[T], top_k=0), "top_k"),
         (dict(depths=[(depth * 1000).astype(np.uint16)], intrinsics=[K], camera_poses=[T]),
          r"depths\[0\]: expected float metres, got dtype uint16"),
+        (dict(depths=[np.zeros_like(depth)], intrinsics=[K], camera_poses=[T]), "observe no cell"),
+        (dict(depths=[depth], intrinsics=[K], camera_poses=[T.as_matrix() @ np.diag([1.0, -1.0, -1.0, 1.0])]),
+         "observe no cell of the action region"),
     ]
     for kwargs, needle in cases:
         kwargs.setdefault("grippers", [GRIPPER])
