@@ -16,7 +16,7 @@ square is grasped at the fence, as in training) and raised so the closing finger
 Usage::
 
     planner = GraspPlanner.from_checkpoint("runs/r1/checkpoints/latest.pt")
-    grasps = planner.plan([depth], [K], [T_world_cam], grippers=["wsg_50", ("robotiq_2f_85", 1.0)])
+    grasps = planner.plan([depth], [K], [T_world_cam], grippers=["wsg_50", ("panda_hand", 1.1)])
     best = grasps[0]    # PlannedGrasp: position (3,) m, yaw rad, opening, gripper index/name, score
 """
 
