@@ -221,10 +221,8 @@ def pool(sides: list[Side]) -> Side:
                                   f"{row_label(first.summary)!r}: only results of one row pool")
         if s.grippers != first.grippers:
             raise EvaluationError(f"{s.path}: grippers {s.grippers}: {first.path} pairs {first.grippers}")
-        mine, theirs = sorted(_candidates(s.path, s.summary)), sorted(_candidates(first.path, first.summary))
-        if mine != theirs:  # adagrasp pairs one row of choices; the grippers it chose among must agree too
-            raise EvaluationError(f"{s.path}: gripper_names: {mine}, but {first.path} has {theirs}: only results "
-                                  "of one row pool")
+        # adagrasp pairs one row of choices: the grippers it chose among must agree too
+        check_same_candidates(s.path, s.summary, first.path, first.summary, "only results of one row pool")
         for seed in s.scene_seeds:
             if seed in seen:
                 raise EvaluationError(f"{s.path}: scene_seed {seed}: also in {seen[seed]} (pool other scenes, "
@@ -246,6 +244,14 @@ def _candidates(path: str, summary: dict) -> list[str]:
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise EvaluationError(f"{path}: gripper_names: expected a non-empty list of gripper names, got {names!r}")
     return names
+
+
+def check_same_candidates(path: str, summary: dict, first_path: str, first: dict, why: str) -> None:
+    """One line (ending in ``why``) when the result ``summary`` (file ``path``) is of other grippers
+    than ``first``: its :func:`_candidates`, in any order."""
+    mine, theirs = sorted(_candidates(path, summary)), sorted(_candidates(first_path, first))
+    if mine != theirs:
+        raise EvaluationError(f"{path}: gripper_names: {mine}, but {first_path} has {theirs}: {why}")
 
 
 def _grippers(path: str, episodes: dict, only: list[str] | None) -> list[str | None]:

@@ -53,6 +53,7 @@ from actors.compare import (
     _episodes,
     _grippers,
     _side,
+    check_same_candidates,
     model_difference,
     pool,
     table_rate,
@@ -281,9 +282,7 @@ def check_one_cell(path: str, summary: dict, first_path: str, first: dict, ignor
         if key not in ignore and summary.get(key) != first.get(key):
             raise EvaluationError(f"{path}: {key}: {summary.get(key)!r}, but {first_path} has {first.get(key)!r}: "
                                   "not one cell")
-    mine, grippers = sorted(_candidates(path, summary)), sorted(_candidates(first_path, first))
-    if mine != grippers:
-        raise EvaluationError(f"{path}: gripper_names: {mine}, but {first_path} has {grippers}: not one cell")
+    check_same_candidates(path, summary, first_path, first, "not one cell")
     _check_sim(path, summary, first_path, first, ignore)
 
 
