@@ -204,7 +204,8 @@ class GraspPlanner:
             raise PlannerError(f"openings: expected values in [0, 1], got {openings}")
         specs = self._grippers(grippers)
         obs = self.observe(depths, intrinsics, camera_poses, obstacle_masks)
-        if not (obs.valid & action_region(self.cfg)).any():  # the policy would fall back to every cell
+        region = action_region(self.cfg)
+        if not (obs.valid & region).any():  # the policy would fall back to every cell
             raise PlannerError(
                 "depths/camera_poses: the cameras observe no cell of the action region (empty depth images, or "
                 "poses that are not world-from-camera in the OpenCV frame: x right, y down, z forward)"
@@ -221,7 +222,7 @@ class GraspPlanner:
             except CalibrationError as e:
                 raise PlannerError(f"calibration: {e}") from None
         self.last_observation, self.last_probs = obs, probs
-        mask = valid_cells(obs, self.cfg)
+        mask = valid_cells(obs, self.cfg, region)
         masked = np.where(mask, probs, -1.0).ravel()
         order = np.argsort(-masked, kind="stable")
         out: list[PlannedGrasp] = []
