@@ -135,10 +135,13 @@ def checkpoint_path(run_dir: Path) -> Path:
     return Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
 
 
-def weights_only_message(path: Path) -> str:
-    """The one line for resuming from a checkpoint without learner state or optimiser."""
-    return (f"{path}: extra.learner: missing (a weights-only file: a step-*.pt snapshot, an averaged or "
-            f"exported model); a run resumes only from the latest.pt it wrote")
+def check_resumable(ckpt, path: Path) -> None:
+    """CheckpointError in one line when the checkpoint ``ckpt`` (read from ``path``) holds no
+    learner state or optimiser: a weights-only file (a step-*.pt snapshot, an averaged or exported
+    model) cannot be resumed from."""
+    if not isinstance(ckpt.extra.get("learner"), dict) or ckpt.optimizer is None:
+        raise CheckpointError(f"{path}: extra.learner: missing (a weights-only file: a step-*.pt snapshot, an "
+                              f"averaged or exported model); a run resumes only from the latest.pt it wrote")
 
 
 def non_finite_tensors(state: dict) -> list[str]:
@@ -203,8 +206,7 @@ class LearnerProcess:
         checkpoint; None for a random start."""
         if ckpt.is_file():
             c = read_checkpoint(ckpt)
-            if not isinstance(c.extra.get("learner"), dict) or c.optimizer is None:
-                raise CheckpointError(weights_only_message(ckpt))
+            check_resumable(c, ckpt)
             ls = dict(c.extra["learner"])
             sampler = ls.pop("replay_sampler", None)
             if sampler is not None:  # checkpoints before it was kept: a stream from the seed

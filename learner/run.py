@@ -111,17 +111,16 @@ def resolve(args: argparse.Namespace) -> tuple[Config, Path]:
         from replay.shard import check_shards
 
         check_shards(run_dir / "replay", cfg)
-    from learner.loop import checkpoint_path, weights_only_message
+    from learner.loop import check_resumable, checkpoint_path
 
     own = checkpoint_path(run_dir)
     if own.is_file():
         # A run with a checkpoint of its own continues from it: an unreadable one, one without the
         # learner's state, or one of another network than the config's, is refused here in one
         # line, before anything starts.
-        stored = read_checkpoint(own)
-        if not isinstance(stored.extra.get("learner"), dict) or stored.optimizer is None:
-            raise CheckpointError(weights_only_message(own))
-        differ = network_difference(cfg, stored.cfg)
+        ckpt = read_checkpoint(own)
+        check_resumable(ckpt, own)
+        differ = network_difference(cfg, ckpt.cfg)
         if differ:
             key, mine, stored = differ
             raise CheckpointError(f"{own}: {key} is {stored!r} there but {mine!r} in this run's config; "
